@@ -1,0 +1,140 @@
+"""SQLAlchemy 2 models: environments, their surveyed maps, classifiers and jobs.
+
+Arrays are kept as ``.npy`` bytes (``allow_pickle=False``) or small JSON, never pickle.
+The schema only changes through an Alembic migration; ``tests/test_migrations.py``
+fails when these models and the migrations disagree.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    CheckConstraint,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from app.db import Base, utcnow
+
+
+class Environment(Base):
+    """A place with targets on its walls: one marker family, one printed size, one map."""
+
+    __tablename__ = "environments"
+    # AUTOINCREMENT: ids of deleted environments are never handed out again.
+    __table_args__ = (
+        CheckConstraint("marker_size_m > 0", name="marker_size_positive"),
+        {"sqlite_autoincrement": True},
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    marker_size_m: Mapped[float] = mapped_column(Float)
+    marker_family: Mapped[str] = mapped_column(String(32), default="fido3x3")
+    classifier_id: Mapped[int | None] = mapped_column(
+        ForeignKey("classifiers.id", ondelete="SET NULL"), nullable=True, index=True
+    )
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(
+        DateTime(timezone=True), default=utcnow, onupdate=utcnow
+    )
+
+    map: Mapped[SurveyMap | None] = relationship(
+        back_populates="environment", cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class SurveyMap(Base):
+    """The surveyed (or imported) 3D disc positions of an environment and its camera.
+
+    One per environment; a new survey or import replaces it in one transaction.
+    ``document`` is the DESIGN.md map document, validated before it is stored.
+    """
+
+    __tablename__ = "maps"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    environment_id: Mapped[int] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), unique=True
+    )
+    frame: Mapped[str] = mapped_column(String(16))
+    n_targets: Mapped[int] = mapped_column(Integer)
+    rms_px: Mapped[float | None] = mapped_column(Float, nullable=True)
+    survey_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    document: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(
+        DateTime(timezone=True), default=utcnow, onupdate=utcnow
+    )
+
+    environment: Mapped[Environment] = relationship(back_populates="map")
+
+
+class Classifier(Base):
+    """A trained disc detector (paper §4): stage-1 parameters and condensed prototypes."""
+
+    __tablename__ = "classifiers"
+    __table_args__ = {"sqlite_autoincrement": True}
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    is_default: Mapped[bool] = mapped_column(Boolean, default=False)
+    source: Mapped[str] = mapped_column(String(32), default="builtin")
+    training_stats: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    training_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    arrays: Mapped[list[ClassifierArray]] = relationship(
+        cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class ClassifierArray(Base):
+    """One named array of a classifier, as ``.npy`` bytes."""
+
+    __tablename__ = "classifier_arrays"
+
+    classifier_id: Mapped[int] = mapped_column(
+        ForeignKey("classifiers.id", ondelete="CASCADE"), primary_key=True
+    )
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    npy: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class Job(Base):
+    """Long work (surveys, classifier training) with its stage, progress and outcome."""
+
+    __tablename__ = "jobs"
+    __table_args__ = (
+        CheckConstraint(
+            "status IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')",
+            name="status_known",
+        ),
+        CheckConstraint("progress >= 0 AND progress <= 1", name="progress_fraction"),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    stage: Mapped[str] = mapped_column(String(64), default="queued")
+    message: Mapped[str] = mapped_column(Text, default="")
+    environment_id: Mapped[int | None] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), nullable=True, index=True
+    )
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)

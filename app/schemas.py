@@ -1,0 +1,162 @@
+"""Pydantic models of the HTTP API: what clients send and what they get back."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+# JSON as Python parses it accepts NaN and Infinity; nothing stored may hold them.
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNegativeFinite = Annotated[float, Field(allow_inf_nan=False, ge=0)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Row3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+
+
+def _aware(value: datetime | None) -> datetime | None:
+    # SQLite returns naive datetimes; everything is stored in UTC.
+    if value is not None and value.tzinfo is None:
+        return value.replace(tzinfo=UTC)
+    return value
+
+
+class Problem(BaseModel):
+    """Error body of every 4xx/5xx reply."""
+
+    detail: str
+
+
+# --- environments -------------------------------------------------------------------
+
+
+def _check_family(name: str) -> str:
+    from app.core.markers import FAMILIES
+
+    if name not in FAMILIES:
+        raise ValueError(f"unknown marker family {name!r}; known: {', '.join(FAMILIES)}")
+    return name
+
+
+class EnvironmentCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+    name: str = Field(min_length=1, max_length=200)
+    marker_size_m: float = Field(
+        gt=0, le=10, allow_inf_nan=False, description="Side of the printed card in metres."
+    )
+    marker_family: str = Field("fido3x3", description="Code family of the printed cards.")
+    classifier_id: int | None = Field(None, description="Classifier to detect with; default if null.")
+
+    _family = field_validator("marker_family")(_check_family)
+
+
+class EnvironmentUpdate(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+    name: str | None = Field(None, min_length=1, max_length=200)
+    marker_size_m: float | None = Field(None, gt=0, le=10, allow_inf_nan=False)
+    classifier_id: int | None = None
+
+
+class EnvironmentOut(BaseModel):
+    id: int
+    name: str
+    marker_size_m: float
+    marker_family: str
+    classifier_id: int | None
+    has_map: bool
+    created_at: datetime
+    updated_at: datetime
+
+    _tz = field_validator("created_at", "updated_at")(_aware)
+
+
+# --- maps ---------------------------------------------------------------------------
+
+
+class CameraModel(BaseModel):
+    """OpenCV camera: ``K`` 3x3 and distortion ``[k1, k2, p1, p2, k3]``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0, le=20000)
+    height: int = Field(gt=0, le=20000)
+    K: Annotated[list[Row3], Field(min_length=3, max_length=3)]
+    dist: Annotated[list[Finite], Field(min_length=5, max_length=5)]
+
+    @model_validator(mode="after")
+    def _camera_matrix(self) -> CameraModel:
+        k = self.K
+        if k[2] != [0.0, 0.0, 1.0] or k[1][0] != 0.0:
+            raise ValueError("K must be upper triangular with last row [0, 0, 1]")
+        if k[0][0] <= 0 or k[1][1] <= 0:
+            raise ValueError("K must have positive focal lengths K[0][0] and K[1][1]")
+        return self
+
+
+class MapTarget(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    id: int = Field(ge=0)
+    discs: Annotated[list[Vec3], Field(min_length=4, max_length=4)] = Field(
+        description="3D centres of discs 0..3 (top-left, top-right, bottom-right, bottom-left)."
+    )
+    std_m: Annotated[list[NonNegativeFinite], Field(min_length=4, max_length=4)] | None = None
+    n_views: int | None = Field(None, ge=0)
+
+
+class MapDocument(BaseModel):
+    """The map of an environment (DESIGN.md): camera and 3D disc centres of every target."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    frame: Literal["survey", "world"]
+    units: Literal["m"] = "m"
+    camera: CameraModel
+    targets: list[MapTarget] = Field(max_length=100_000)
+    rms_px: NonNegativeFinite | None = None
+    survey_job_id: str | None = Field(None, max_length=32)
+
+    @field_validator("targets")
+    @classmethod
+    def _unique_ids(cls, targets: list[MapTarget]) -> list[MapTarget]:
+        seen: set[int] = set()
+        for target in targets:
+            if target.id in seen:
+                raise ValueError(f"target id {target.id} appears more than once")
+            seen.add(target.id)
+        return targets
+
+
+# --- markers ------------------------------------------------------------------------
+
+
+class MarkerFamilyOut(BaseModel):
+    name: str
+    cells: int
+    min_distance: int = Field(description="Least Hamming distance between codes in any rotation.")
+    count: int = Field(description="Number of marker ids: 0 .. count-1.")
+
+
+class MarkerCatalogue(BaseModel):
+    default_family: str
+    families: list[MarkerFamilyOut]
+
+
+class MarkerLayoutOut(BaseModel):
+    id: int
+    family: str
+    discs: list[list[float]] = Field(description="Disc centres in card units, card spans 0..1.")
+    disc_radius: float
+    code: list[list[int]]
+
+
+# --- health -------------------------------------------------------------------------
+
+
+class Readiness(BaseModel):
+    status: Literal["ready", "not ready"]
+    database: str
+    schema_revision: list[str]
+    head_revision: list[str]

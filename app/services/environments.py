@@ -1,0 +1,110 @@
+"""Environments and their maps: each public function is one transaction."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.core.markers import get_family
+from app.models import Classifier, Environment, SurveyMap
+from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument
+from app.services.errors import Invalid, NotFound
+
+
+def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
+    return EnvironmentOut(
+        id=environment.id,
+        name=environment.name,
+        marker_size_m=environment.marker_size_m,
+        marker_family=environment.marker_family,
+        classifier_id=environment.classifier_id,
+        has_map=has_map,
+        created_at=environment.created_at,
+        updated_at=environment.updated_at,
+    )
+
+
+def _environment(session: Session, environment_id: int) -> Environment:
+    environment = session.get(Environment, environment_id)
+    if environment is None:
+        raise NotFound(f"environment {environment_id} not found")
+    return environment
+
+
+def _has_map(session: Session, environment_id: int) -> bool:
+    found = session.scalar(select(SurveyMap.id).where(SurveyMap.environment_id == environment_id))
+    return found is not None
+
+
+def _check_classifier(session: Session, classifier_id: int | None) -> None:
+    if classifier_id is not None and session.get(Classifier, classifier_id) is None:
+        raise Invalid(f"classifier_id: classifier {classifier_id} does not exist")
+
+
+def create(session: Session, spec: EnvironmentCreate) -> EnvironmentOut:
+    _check_classifier(session, spec.classifier_id)
+    environment = Environment(**spec.model_dump())
+    session.add(environment)
+    session.commit()
+    return to_out(environment, has_map=False)
+
+
+def list_all(session: Session) -> list[EnvironmentOut]:
+    environments = session.scalars(select(Environment).order_by(Environment.id)).all()
+    with_map = set(session.scalars(select(SurveyMap.environment_id)).all())
+    return [to_out(e, e.id in with_map) for e in environments]
+
+
+def get(session: Session, environment_id: int) -> EnvironmentOut:
+    environment = _environment(session, environment_id)
+    return to_out(environment, _has_map(session, environment_id))
+
+
+def update(session: Session, environment_id: int, changes: EnvironmentUpdate) -> EnvironmentOut:
+    environment = _environment(session, environment_id)
+    fields = changes.model_dump(exclude_unset=True)
+    for required in ("name", "marker_size_m"):
+        if required in fields and fields[required] is None:
+            raise Invalid(f"{required}: may not be null")
+    if "classifier_id" in fields:
+        _check_classifier(session, fields["classifier_id"])
+    for name, value in fields.items():
+        setattr(environment, name, value)
+    session.commit()
+    return to_out(environment, _has_map(session, environment_id))
+
+
+def delete(session: Session, environment_id: int) -> None:
+    session.delete(_environment(session, environment_id))
+    session.commit()
+
+
+def get_map(session: Session, environment_id: int) -> MapDocument:
+    _environment(session, environment_id)
+    stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
+    if stored is None:
+        raise NotFound(f"environment {environment_id} has no map yet: run a survey or PUT one")
+    return MapDocument.model_validate(stored.document)
+
+
+def put_map(session: Session, environment_id: int, document: MapDocument) -> MapDocument:
+    """Replace the environment's map whole, in one transaction; a refused document
+    leaves the stored map as it was."""
+    environment = _environment(session, environment_id)
+    family = get_family(environment.marker_family)
+    outside = sorted(t.id for t in document.targets if t.id >= len(family))
+    if outside:
+        raise Invalid(
+            f"targets: ids {outside[:10]} are outside family {family.name} (0..{len(family) - 1})"
+        )
+    stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
+    if stored is None:
+        stored = SurveyMap(environment_id=environment_id)
+        session.add(stored)
+    stored.frame = document.frame
+    stored.n_targets = len(document.targets)
+    stored.rms_px = document.rms_px
+    stored.survey_job_id = document.survey_job_id
+    stored.document = document.model_dump(mode="json")
+    session.commit()
+    return document

@@ -1,0 +1,35 @@
+"""Service settings, read from the environment with the prefix ``FIDOTRACK_``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, computed_field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Everything a deployment can set; ``uvicorn app.main:app`` reads these."""
+
+    model_config = SettingsConfigDict(env_prefix="FIDOTRACK_", env_file=None, extra="ignore")
+
+    data_dir: Path = Field(Path("data"), description="Directory for the SQLite file, uploads and locks.")
+    database_url: str | None = Field(
+        None, description="Any SQLAlchemy URL; default: a SQLite file under data_dir."
+    )
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    sqlite_busy_timeout_ms: int = Field(5000, ge=0)
+
+    # Limits on what clients send.
+    max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Largest survey upload.")
+    max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description="Largest single image or frame.")
+    max_image_pixels: int = Field(40_000_000, ge=64 * 64, description="Largest width*height decoded.")
+    max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame.")
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'fidotrack.db').as_posix()}"

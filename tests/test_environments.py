@@ -1,0 +1,154 @@
+"""Environments CRUD and map import/export through the HTTP API."""
+
+from __future__ import annotations
+
+
+import json
+
+import pytest
+from sqlalchemy import text
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from app.settings import Settings
+from tests.conftest import example_map
+
+
+def _create(client: TestClient, name: str = "studio", size: float = 0.15) -> dict:
+    reply = client.post("/environments", json={"name": name, "marker_size_m": size})
+    assert reply.status_code == 201, reply.text
+    assert reply.headers["location"] == f"/environments/{reply.json()['id']}"
+    return reply.json()
+
+
+def test_crud_round_trip(client: TestClient) -> None:
+    env = _create(client)
+    assert env["marker_family"] == "fido3x3" and env["has_map"] is False
+    assert client.get("/environments").json() == [env]
+    patched = client.patch(f"/environments/{env['id']}", json={"name": "stage B", "marker_size_m": 0.2})
+    assert patched.status_code == 200
+    assert patched.json()["name"] == "stage B" and patched.json()["marker_size_m"] == 0.2
+    assert client.get(f"/environments/{env['id']}").json()["name"] == "stage B"
+    assert client.delete(f"/environments/{env['id']}").status_code == 204
+    assert client.get(f"/environments/{env['id']}").status_code == 404
+    assert client.get("/environments").json() == []
+
+
+@pytest.mark.parametrize(
+    "method,path",
+    [("get", "/environments/999"), ("patch", "/environments/999"), ("delete", "/environments/999"),
+     ("get", "/environments/999/map"), ("put", "/environments/999/map")],
+)
+def test_unknown_environment_is_404_with_message(client: TestClient, method: str, path: str) -> None:
+    kwargs = {"json": {"name": "x"}} if method == "patch" else {}
+    if method == "put":
+        kwargs = {"json": example_map()}
+    reply = getattr(client, method)(path, **kwargs)
+    assert reply.status_code == 404
+    assert "environment 999 not found" in reply.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    "body,field",
+    [
+        ({"marker_size_m": 0.15}, "name"),
+        ({"name": "a", "marker_size_m": -1}, "marker_size_m"),
+        ({"name": "a", "marker_size_m": "big"}, "marker_size_m"),
+        ({"name": "a", "marker_size_m": 0.1, "marker_family": "qr"}, "marker_family"),
+        ({"name": "", "marker_size_m": 0.1}, "name"),
+        ({"name": "a", "marker_size_m": 0.1, "colour": "red"}, "colour"),
+    ],
+)
+def test_malformed_environment_is_422_naming_the_field(client: TestClient, body: dict, field: str) -> None:
+    reply = client.post("/environments", json=body)
+    assert reply.status_code == 422
+    errors = reply.json()["detail"]
+    assert any(field in error["loc"] for error in errors), errors
+    assert all(error["msg"] for error in errors)
+    assert client.get("/environments").json() == []
+
+
+def test_patch_refuses_null_and_unknown_classifier(client: TestClient) -> None:
+    env = _create(client)
+    assert client.patch(f"/environments/{env['id']}", json={"name": None}).status_code == 422
+    reply = client.patch(f"/environments/{env['id']}", json={"classifier_id": 42})
+    assert reply.status_code == 422 and "classifier" in reply.json()["detail"]
+    assert client.get(f"/environments/{env['id']}").json() == env
+
+
+def test_map_import_and_export(client: TestClient) -> None:
+    env = _create(client)
+    assert client.get(f"/environments/{env['id']}/map").status_code == 404
+    document = example_map(3)
+    reply = client.put(f"/environments/{env['id']}/map", json=document)
+    assert reply.status_code == 200, reply.text
+    assert client.get(f"/environments/{env['id']}/map").json() == document
+    assert client.get(f"/environments/{env['id']}").json()["has_map"] is True
+
+
+def _broken_maps() -> list[tuple[str, dict]]:
+    cases: list[tuple[str, dict]] = []
+
+    def case(name: str, mutate) -> None:  # type: ignore[no-untyped-def]
+        document = example_map(2)
+        mutate(document)
+        cases.append((name, document))
+
+    case("nan disc", lambda d: d["targets"][0]["discs"][1].__setitem__(2, float("nan")))
+    case("inf focal", lambda d: d["camera"]["K"][0].__setitem__(0, float("inf")))
+    case("three discs", lambda d: d["targets"][0]["discs"].pop())
+    case("2d disc", lambda d: d["targets"][1]["discs"].__setitem__(0, [1.0, 2.0]))
+    case("dist of 4", lambda d: d["camera"]["dist"].pop())
+    case("K not 3x3", lambda d: d["camera"].__setitem__("K", [[1, 0], [0, 1]]))
+    case("K bottom row", lambda d: d["camera"]["K"].__setitem__(2, [0, 0, 2]))
+    case("negative std", lambda d: d["targets"][0]["std_m"].__setitem__(0, -0.1))
+    case("duplicate ids", lambda d: d["targets"][1].__setitem__("id", 0))
+    case("bad frame", lambda d: d.__setitem__("frame", "camera"))
+    case("id outside family", lambda d: d["targets"][1].__setitem__("id", 60))
+    case("zero width", lambda d: d["camera"].__setitem__("width", 0))
+    return cases
+
+
+@pytest.mark.parametrize("name,document", _broken_maps(), ids=[n for n, _ in _broken_maps()])
+def test_bad_map_is_refused_whole_and_old_map_stays(client: TestClient, name: str, document: dict) -> None:
+    env = _create(client)
+    good = example_map(1)
+    assert client.put(f"/environments/{env['id']}/map", json=good).status_code == 200
+    # json.dumps writes NaN/Infinity tokens, as a careless client would.
+    reply = client.put(
+        f"/environments/{env['id']}/map",
+        content=json.dumps(document),
+        headers={"content-type": "application/json"},
+    )
+    assert reply.status_code == 422, (name, reply.text)
+    assert reply.json()["detail"]
+    assert client.get(f"/environments/{env['id']}/map").json() == good
+
+
+def test_malformed_json_body_is_422(client: TestClient) -> None:
+    env = _create(client)
+    reply = client.put(
+        f"/environments/{env['id']}/map", content=b"{not json", headers={"content-type": "application/json"}
+    )
+    assert reply.status_code == 422
+
+
+def test_environments_and_maps_survive_restart(settings: Settings) -> None:
+    document = example_map(4)
+    with TestClient(create_app(settings)) as first:
+        env = _create(first, name="warehouse", size=0.3)
+        assert first.put(f"/environments/{env['id']}/map", json=document).status_code == 200
+    with TestClient(create_app(Settings(data_dir=settings.data_dir))) as second:
+        again = second.get(f"/environments/{env['id']}").json()
+        assert again["name"] == "warehouse" and again["marker_size_m"] == 0.3 and again["has_map"]
+        assert second.get(f"/environments/{env['id']}/map").json() == document
+
+
+def test_deleting_environment_deletes_its_map_and_ids_are_not_reused(client: TestClient) -> None:
+    env = _create(client)
+    client.put(f"/environments/{env['id']}/map", json=example_map())
+    assert client.delete(f"/environments/{env['id']}").status_code == 204
+    with client.app.state.engine.connect() as connection:
+        assert connection.execute(text("SELECT count(*) FROM maps")).scalar_one() == 0
+    # A client holding the old id must not silently reach a new environment.
+    assert _create(client, name="other")["id"] != env["id"]

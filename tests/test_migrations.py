@@ -1,0 +1,87 @@
+"""The schema only changes through migrations, and the service brings any database to head."""
+
+from __future__ import annotations
+
+import multiprocessing
+from pathlib import Path
+
+from alembic import command
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from fastapi.testclient import TestClient
+from sqlalchemy import inspect, text
+
+from app import models  # noqa: F401
+from app.db import Base, alembic_config, head_revisions, make_engine, schema_at_head, upgrade_to_head
+from app.main import create_app
+from app.settings import Settings
+
+
+def _url(tmp_path: Path) -> str:
+    return f"sqlite:///{tmp_path / 'm.db'}"
+
+
+def test_models_and_migrations_agree(tmp_path: Path) -> None:
+    engine = make_engine(_url(tmp_path))
+    upgrade_to_head(engine, tmp_path)
+    with engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True})
+        differences = compare_metadata(context, Base.metadata)
+    assert differences == [], f"models differ from migrations: {differences}"
+
+
+def test_sqlite_runs_with_wal_foreign_keys_and_busy_timeout(tmp_path: Path) -> None:
+    engine = make_engine(_url(tmp_path), busy_timeout_ms=4321)
+    with engine.connect() as connection:
+        assert connection.execute(text("PRAGMA journal_mode")).scalar_one() == "wal"
+        assert connection.execute(text("PRAGMA foreign_keys")).scalar_one() == 1
+        assert connection.execute(text("PRAGMA busy_timeout")).scalar_one() == 4321
+
+
+def test_downgrade_and_upgrade_round_trip(tmp_path: Path) -> None:
+    engine = make_engine(_url(tmp_path))
+    upgrade_to_head(engine, tmp_path)
+    with engine.begin() as connection:
+        command.downgrade(alembic_config(connection), "base")
+    assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
+    assert not schema_at_head(engine)
+    upgrade_to_head(engine, tmp_path)
+    assert schema_at_head(engine)
+    assert {"environments", "maps", "classifiers", "classifier_arrays", "jobs"} <= set(
+        inspect(engine).get_table_names()
+    )
+
+
+def _start_worker(url: str, lock_dir: str) -> None:
+    upgrade_to_head(make_engine(url), Path(lock_dir))
+
+
+def test_workers_starting_together_do_not_collide(tmp_path: Path) -> None:
+    url = _url(tmp_path)
+    spawn = multiprocessing.get_context("spawn")
+    workers = [spawn.Process(target=_start_worker, args=(url, str(tmp_path))) for _ in range(4)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join(120)
+    assert [w.exitcode for w in workers] == [0, 0, 0, 0]
+    engine = make_engine(url)
+    assert schema_at_head(engine)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT count(*) FROM alembic_version")).scalar_one() == 1
+
+
+def test_service_migrates_an_old_database_on_start_and_readyz_tracks_it(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path)
+    engine = make_engine(settings.resolved_database_url)
+    upgrade_to_head(engine, tmp_path)
+    with engine.begin() as connection:
+        command.downgrade(alembic_config(connection), "base")
+    with TestClient(create_app(settings)) as client:
+        ready = client.get("/readyz")
+        assert ready.status_code == 200 and ready.json()["status"] == "ready"
+        assert ready.json()["schema_revision"] == sorted(head_revisions())
+        with client.app.state.engine.begin() as connection:
+            command.downgrade(alembic_config(connection), "base")
+        behind = client.get("/readyz")
+        assert behind.status_code == 503 and behind.json()["status"] == "not ready"
