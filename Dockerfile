@@ -1,0 +1,28 @@
+# fidotrack service image: slim Python, non-root, same start command as the README.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    FIDOTRACK_HOST=0.0.0.0 \
+    FIDOTRACK_PORT=8000 \
+    FIDOTRACK_DATA_DIR=/data
+
+RUN useradd --create-home --uid 10001 fidotrack \
+    && mkdir -p /data && chown fidotrack:fidotrack /data
+
+WORKDIR /srv/fidotrack
+# Dependencies first so that code changes do not reinstall them.
+COPY pyproject.toml README.md ./
+COPY app/__init__.py app/__init__.py
+RUN pip install --upgrade pip && pip install -e . && rm -rf /root/.cache
+COPY app app
+COPY migrations migrations
+COPY alembic.ini ./
+
+USER fidotrack
+VOLUME ["/data"]
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=3s --start-period=20s --retries=3 \
+    CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/livez', timeout=2).status == 200 else 1)"
+CMD ["fidotrack", "serve"]

@@ -1,0 +1,1 @@
+"""The fidotrack vision library: numpy/OpenCV/SciPy only, no web or database code."""

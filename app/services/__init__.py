@@ -1,0 +1,1 @@
+"""Orchestration between the HTTP layer and the vision library in app.core."""

@@ -1,0 +1,29 @@
+"""The ``fidotrack markers`` command writes printable sheets offline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from app.cli import main
+
+
+def test_markers_writes_a_pdf(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "sheet.pdf"
+    assert main(["markers", "--ids", "0-11", "--size-mm", "150", "-o", str(out)]) == 0
+    assert out.read_bytes().startswith(b"%PDF")
+    assert "wrote" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [(["--ids", "0-99"], "not in family"), (["--ids", "x"], "ids"), (["--size-mm", "500"], "size_mm")],
+)
+def test_markers_refuses_bad_arguments(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    out = tmp_path / "sheet.pdf"
+    assert main(["markers", *args, "-o", str(out), "-q"]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
