@@ -47,6 +47,71 @@ def _markers(args: argparse.Namespace) -> int:
     return 0
 
 
+def _synth_frames(args: argparse.Namespace) -> int:
+    import json
+
+    import cv2
+    import numpy as np
+
+    from app.core import scenes
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    truths = []
+    for index in tqdm(range(args.count), desc=f"{args.scenario} frames", unit="frame", disable=args.quiet):
+        image, truth = scenes.scenario_frame(args.scenario, rng, args.width, args.height, args.family)
+        name = f"{args.scenario}_{index:04d}.png"
+        cv2.imwrite(str(args.out / name), image)
+        truths.append({"file": name, "camera": truth.camera.to_dict(), **truth.to_dict()})
+    (args.out / "truth.json").write_text(json.dumps({"scenario": args.scenario, "frames": truths}, indent=1))
+    print(f"wrote {args.count} frames and truth.json to {args.out}", file=sys.stderr)
+    return 0
+
+
+def _synth_room(args: argparse.Namespace) -> int:
+    import json
+
+    import cv2
+    import numpy as np
+
+    from app.core import scenes
+    from app.core.camera import Camera
+
+    size = tuple(float(v) for v in args.room.split("x"))
+    if len(size) != 3:
+        print("fidotrack synth room: --room must be WxDxH, e.g. 8x6x3", file=sys.stderr)
+        return 2
+    rng = np.random.default_rng(args.seed)
+    camera = Camera.pinhole(args.focal, args.width, args.height, dist=[args.k1, args.k2, 0.0, 0.0, 0.0])
+    scene = scenes.room_scene(rng, size, args.markers, args.marker_size, args.family)  # type: ignore[arg-type]
+    args.out.mkdir(parents=True, exist_ok=True)
+    document: dict[str, object] = {"camera": camera.to_dict(), "map": scene.map_document(camera),
+                                   "room_size": list(size), "marker_size_m": args.marker_size}
+    for walk in ("calibration", "tracking"):
+        poses = scenes.camera_walk(rng, size, args.frames, walk)  # type: ignore[arg-type]
+        frames = []
+        writer = None
+        if args.format == "mp4":
+            writer = cv2.VideoWriter(str(args.out / f"{walk}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), args.fps,
+                                     (args.width, args.height), isColor=False)
+        else:
+            (args.out / walk).mkdir(exist_ok=True)
+        frames_iter = scenes.render_walk(scene, camera, poses, rng, args.degradation)
+        for index, (image, truth) in enumerate(tqdm(frames_iter, total=len(poses), desc=walk, unit="frame",
+                                                     disable=args.quiet)):
+            if writer is not None:
+                writer.write(image)
+            else:
+                cv2.imwrite(str(args.out / walk / f"{index:05d}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 92])
+            frames.append(truth.to_dict())
+        if writer is not None:
+            writer.release()
+        document[walk] = frames
+    (args.out / "truth.json").write_text(json.dumps(document))
+    print(f"wrote the {args.format} walks and truth.json to {args.out}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fidotrack", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -64,7 +129,39 @@ def build_parser() -> argparse.ArgumentParser:
     cards.add_argument("-o", "--output", type=Path, default=Path("markers.pdf"))
     cards.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     cards.set_defaults(run=_markers)
+
+    synth = commands.add_parser("synth", help="render simulated frames with ground truth")
+    kinds = synth.add_subparsers(dest="kind", required=True)
+    frames = kinds.add_parser("frames", help="single frames of a named scenario")
+    frames.add_argument("--scenario", default="default", choices=sorted(scenes_names()))
+    frames.add_argument("--count", type=int, default=10)
+    frames.set_defaults(run=_synth_frames)
+    room = kinds.add_parser("room", help="a room with markers; calibration and tracking walks")
+    room.add_argument("--room", default="8x6x3", help="W x D x H in metres")
+    room.add_argument("--markers", type=int, default=30)
+    room.add_argument("--marker-size", type=float, default=0.2, help="card side in metres")
+    room.add_argument("--frames", type=int, default=300, help="frames per walk")
+    room.add_argument("--focal", type=float, default=820.0)
+    room.add_argument("--k1", type=float, default=-0.12)
+    room.add_argument("--k2", type=float, default=0.0)
+    room.add_argument("--fps", type=float, default=30.0)
+    room.add_argument("--degradation", default="default", help="none, default, blur, dark or full")
+    room.add_argument("--format", choices=["mp4", "jpeg"], default="mp4")
+    room.set_defaults(run=_synth_room)
+    for sub in (frames, room):
+        sub.add_argument("--out", type=Path, required=True)
+        sub.add_argument("--seed", type=int, default=0)
+        sub.add_argument("--width", type=int, default=640)
+        sub.add_argument("--height", type=int, default=480)
+        sub.add_argument("--family", default="fido3x3")
+        sub.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return parser
+
+
+def scenes_names() -> list[str]:
+    from app.core.scenes import SCENARIOS
+
+    return list(SCENARIOS)
 
 
 def main(argv: list[str] | None = None) -> int:

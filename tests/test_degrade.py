@@ -414,3 +414,12 @@ def test_validation() -> None:
         motion_blur(np.zeros((4, 4, 3), np.float32), 2.0, 0.0)
     with pytest.raises(ValueError):
         defocus(np.zeros((4, 4), np.float32), -1.0)
+
+
+def test_tiny_defocus_radius_is_the_identity_not_nan() -> None:
+    from app.core.degrade import defocus
+
+    img = np.random.default_rng(0).random((20, 20), dtype=np.float32)
+    out = defocus(img, 1e-3)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out, img, atol=1e-6)

@@ -231,9 +231,14 @@ def sensor_noise(
     _check(read_sigma >= 0.0, f"read_sigma must be >= 0, got {read_sigma}")
     _check(shot_scale >= 0.0, f"shot_scale must be >= 0, got {shot_scale}")
     out = np.clip(_as_image(img), 0.0, 1.0)
-    if shot_scale > 0.0:
+    if shot_scale >= 1e-7:
         electrons = rng.poisson(out.astype(np.float64) / shot_scale)
         out = (electrons * shot_scale).astype(np.float32)
+    elif shot_scale > 0.0:
+        # Over ~1e7 electrons Poisson is Gaussian to any precision that matters, and
+        # numpy's Poisson sampler refuses such rates.
+        noise = rng.normal(0.0, 1.0, size=out.shape) * np.sqrt(out * shot_scale)
+        out = (out + noise).astype(np.float32)
     if read_sigma > 0.0:
         out += rng.normal(0.0, read_sigma, size=out.shape).astype(np.float32)
     return np.clip(out, 0.0, 1.0, out=out)
@@ -312,7 +317,8 @@ def defocus_kernel(radius_px: float) -> np.ndarray:
     _check(r >= 0.0, f"radius_px must be >= 0, got {r}")
     half = int(math.ceil(r)) + 1
     size = 2 * half + 1
-    if r == 0.0:
+    if r < 1.0 / 32:  # smaller than the sub-sample spacing: no sample falls inside
+
         kernel = np.zeros((size, size), dtype=np.float32)
         kernel[half, half] = 1.0
         return kernel

@@ -1,0 +1,417 @@
+"""Camera pose and intrinsics with OpenCV's conventions (DESIGN.md "Conventions").
+
+* Pose: ``x_cam = R @ X_map + t`` (OpenCV's rvec/tvec meaning); camera looks along
+  +z_cam, x_cam to the right and y_cam down in the image.
+* Camera: ``K`` 3x3 and ``dist = [k1, k2, p1, p2, k3]`` (OpenCV's model); pixel
+  coordinates with the centre of the top-left pixel at (0, 0).
+
+Projection is done in numpy (vectorised, float64) and matches ``cv2.projectPoints`` to
+round-off; the simulator and the trackers call it for thousands of points per frame,
+where the per-call overhead of cv2 and its (N, 1, 3) reshapes would dominate.
+Pure numpy/OpenCV; no I/O.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+
+#: How far the ideal (undistorted) rendering canvas may extend beyond the image on each
+#: side, as a fraction of the image size. Strong barrel distortion sends the corners'
+#: undistorted positions very far out; past this they are rendered as background.
+_MAX_CANVAS_MARGIN = 1.0
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _points(X: ArrayLike, dim: int, name: str) -> np.ndarray:
+    """(N, dim) float64 view of X; a single point of shape (dim,) becomes (1, dim)."""
+    a = np.asarray(X, dtype=np.float64)
+    if a.ndim == 1 and a.shape[0] == dim:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise ValueError(f"{name} must have shape (N, {dim}), got {np.shape(X)}")
+    return a
+
+
+# --------------------------------------------------------------------------------------
+# Pose
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: generated __eq__ on ndarrays is ambiguous
+class Pose:
+    """Rigid map-to-camera transform: ``x_cam = R @ X_map + t``."""
+
+    R: np.ndarray  # (3, 3) rotation, float64, read-only
+    t: np.ndarray  # (3,) translation, float64, read-only
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R, dtype=np.float64)
+        t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"Pose needs R (3, 3) and t (3,), got {R.shape} and {t.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise ValueError("Pose R and t must be finite")
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError("Pose R must be a rotation matrix")
+        object.__setattr__(self, "R", _readonly(R))
+        object.__setattr__(self, "t", _readonly(t))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Pose):
+            return NotImplemented
+        return bool(np.array_equal(self.R, other.R) and np.array_equal(self.t, other.t))
+
+    def __hash__(self) -> int:
+        return hash((self.R.tobytes(), self.t.tobytes()))
+
+    @classmethod
+    def identity(cls) -> Pose:
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_rvec_tvec(cls, rvec: ArrayLike, tvec: ArrayLike) -> Pose:
+        """From OpenCV's Rodrigues vector and translation (solvePnP's output)."""
+        rvec = np.asarray(rvec, dtype=np.float64).reshape(3, 1)
+        R, _ = cv2.Rodrigues(rvec)
+        return cls(R, np.asarray(tvec, dtype=np.float64).reshape(3))
+
+    @classmethod
+    def look_at(
+        cls, eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)
+    ) -> Pose:
+        """Camera at `eye` looking at `target`; world `up` appears up in the image.
+
+        +z_cam points at the target, y_cam (image down) is the component of -up
+        orthogonal to the viewing direction, x_cam = y_cam x z_cam (image right).
+        ValueError if `up` is parallel to the viewing direction (roll undefined).
+        """
+        eye = np.asarray(eye, dtype=np.float64).reshape(3)
+        target = np.asarray(target, dtype=np.float64).reshape(3)
+        up = np.asarray(up, dtype=np.float64).reshape(3)
+        z = target - eye
+        nz = np.linalg.norm(z)
+        if nz == 0:
+            raise ValueError("look_at: eye and target coincide")
+        z /= nz
+        x = np.cross(z, up)
+        nx = np.linalg.norm(x)
+        if nx < 1e-9 * max(np.linalg.norm(up), 1e-300):
+            raise ValueError("look_at: up is parallel to the viewing direction")
+        x /= nx
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        return cls(R, -R @ eye)
+
+    @property
+    def position(self) -> np.ndarray:
+        """Camera centre in map coordinates, ``-R.T @ t``."""
+        return -self.R.T @ self.t
+
+    @property
+    def rvec(self) -> np.ndarray:
+        """OpenCV Rodrigues vector, shape (3,)."""
+        rvec, _ = cv2.Rodrigues(self.R)
+        return rvec.reshape(3)
+
+    def transform(self, X: ArrayLike) -> np.ndarray:
+        """Map points (N, 3) -> camera coordinates (N, 3). A (3,) point gives (1, 3)."""
+        return _points(X, 3, "X") @ self.R.T + self.t
+
+    def inverse(self) -> Pose:
+        """The camera-to-map transform, as a Pose (``X_map = R.T @ x_cam - R.T @ t``)."""
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    def compose(self, other: Pose) -> Pose:
+        """``self after other``: x = self.R @ (other.R @ X + other.t) + self.t."""
+        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "position": self.position.tolist(),
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Camera
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class IdealCanvas:
+    """Where to render an undistorted (ideal pinhole) image so that `map_x`, `map_y`
+    (cv2.remap, float32, image size) turn it into this camera's distorted image.
+
+    The canvas covers ideal-pixel columns x0 .. x0 + width - 1 and rows y0 .. y0 +
+    height - 1 (ideal pixel coordinates of the same K); the maps are relative to it.
+    """
+
+    x0: int
+    y0: int
+    width: int
+    height: int
+    map_x: np.ndarray
+    map_y: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)  # eq/hash below compare the parameter values
+class Camera:
+    """Pinhole camera with OpenCV's lens distortion ``[k1, k2, p1, p2, k3]``."""
+
+    K: np.ndarray  # (3, 3) float64, read-only
+    dist: np.ndarray  # (5,) float64, read-only
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        dist = np.zeros(5) if self.dist is None else np.asarray(self.dist, np.float64).ravel()
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be 3x3, got {K.shape}")
+        if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError("K must be finite with positive focal lengths")
+        if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+            raise ValueError("K must be upper triangular with K[2, 2] == 1")
+        if dist.shape == (4,):
+            dist = np.append(dist, 0.0)  # [k1, k2, p1, p2] is a valid OpenCV vector
+        if dist.shape != (5,) or not np.all(np.isfinite(dist)):
+            raise ValueError(f"dist must be [k1, k2, p1, p2, k3] (5 finite values), got {dist}")
+        w, h = int(self.width), int(self.height)
+        if w != self.width or h != self.height or w <= 0 or h <= 0:
+            raise ValueError(
+                f"width and height must be positive integers: {self.width}x{self.height}"
+            )
+        object.__setattr__(self, "K", _readonly(K))
+        object.__setattr__(self, "dist", _readonly(dist))
+        object.__setattr__(self, "width", w)
+        object.__setattr__(self, "height", h)
+
+    def _key(self) -> tuple[bytes, bytes, int, int]:
+        return (self.K.tobytes(), self.dist.tobytes(), self.width, self.height)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def __repr__(self) -> str:
+        return (
+            f"Camera(f=({self.fx:.6g}, {self.fy:.6g}), c=({self.cx:.6g}, {self.cy:.6g}), "
+            f"dist={self.dist.tolist()}, size={self.width}x{self.height})"
+        )
+
+    # ---- construction / serialisation ------------------------------------------------
+
+    @classmethod
+    def pinhole(
+        cls,
+        f: float,
+        width: int,
+        height: int,
+        dist: ArrayLike | None = None,
+        cx: float | None = None,
+        cy: float | None = None,
+    ) -> Camera:
+        """Square pixels, no skew; principal point defaults to the image centre, which
+        is ((w - 1) / 2, (h - 1) / 2) because the top-left pixel's centre is (0, 0)."""
+        cx = (width - 1) / 2.0 if cx is None else float(cx)
+        cy = (height - 1) / 2.0 if cy is None else float(cy)
+        K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
+        return cls(K, np.zeros(5) if dist is None else np.asarray(dist, np.float64), width, height)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The map document's "camera" object (DESIGN.md "Map format")."""
+        return {
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Camera:
+        try:
+            return cls(np.asarray(d["K"], np.float64), np.asarray(d["dist"], np.float64),
+                       int(d["width"]), int(d["height"]))
+        except KeyError as e:
+            raise ValueError(f"camera document lacks {e.args[0]!r}") from None
+
+    # ---- parameters -------------------------------------------------------------------
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height), the order cv2 wants."""
+        return (self.width, self.height)
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0))
+
+    # ---- projection -------------------------------------------------------------------
+
+    def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """OpenCV's distortion of normalised coordinates (x, y) = (X/Z, Y/Z)."""
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2.0 * x * y
+        xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2
+        return xd, yd
+
+    def _to_pixels(self, xd: np.ndarray, yd: np.ndarray) -> np.ndarray:
+        K = self.K
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
+        return np.stack([u, v], axis=-1)
+
+    def _to_normalised(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        K = self.K
+        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return x, y
+
+    def project(self, X_cam: ArrayLike) -> np.ndarray:
+        """Camera-frame points (N, 3) -> distorted pixels (N, 2), as cv2.projectPoints.
+
+        No visibility test: points behind the camera still get a (meaningless) pixel
+        and Z == 0 gives inf/nan; use `visible_points` (render module) to filter.
+        """
+        X = _points(X_cam, 3, "X_cam")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = X[:, 0] / X[:, 2]
+            y = X[:, 1] / X[:, 2]
+            if self.has_distortion:
+                x, y = self._distort(x, y)
+            return self._to_pixels(x, y)
+
+    def project_map(self, X_map: ArrayLike, pose: Pose) -> np.ndarray:
+        """Map points (N, 3) seen from `pose` -> distorted pixels (N, 2)."""
+        return self.project(pose.transform(X_map))
+
+    def project_ideal(self, X_cam: ArrayLike) -> np.ndarray:
+        """Camera-frame points (N, 3) -> ideal pinhole pixels (N, 2) (no distortion)."""
+        X = _points(X_cam, 3, "X_cam")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self._to_pixels(X[:, 0] / X[:, 2], X[:, 1] / X[:, 2])
+
+    def distort_pixels(self, uv_ideal: ArrayLike) -> np.ndarray:
+        """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2) (same K)."""
+        x, y = self._to_normalised(_points(uv_ideal, 2, "uv_ideal"))
+        if self.has_distortion:
+            x, y = self._distort(x, y)
+        return self._to_pixels(x, y)
+
+    def undistort_pixels(self, uv: ArrayLike, iterations: int = 20) -> np.ndarray:
+        """Distorted pixels (N, 2) -> ideal pinhole pixels (N, 2) of the same K.
+
+        Like cv2.undistortPoints(..., P=K), but solved to round-off with Newton's
+        method (cv2's default is 5 fixed-point steps, ~0.01 px off at the corners of a
+        strongly distorted lens). Where the distortion polynomial folds over (far
+        outside the lens's valid field) the answer is a best effort.
+        """
+        uv = _points(uv, 2, "uv")
+        if not self.has_distortion:
+            return uv.copy()
+        xd, yd = self._to_normalised(uv)
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xd.copy(), yd.copy()
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+            ux, uy = self._distort(x, y)
+            ex, ey = ux - xd, uy - yd
+            # Jacobian of the distortion map
+            a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+            b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+            d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+            det = a * d - b * b
+            ok = np.abs(det) > 1e-12
+            det = np.where(ok, det, 1.0)
+            dx = np.where(ok, (d * ex - b * ey) / det, ex)
+            dy = np.where(ok, (a * ey - b * ex) / det, ey)
+            # Damp huge steps (fold-over region) so nothing explodes to inf.
+            step = np.maximum(np.hypot(dx, dy), 1e-300)
+            scale = np.minimum(1.0, 0.5 * (1.0 + np.hypot(x, y)) / step)
+            x -= dx * scale
+            y -= dy * scale
+            if float(np.max(step, initial=0.0)) < 1e-12:  # ~1e-9 px; Newton needs 3-5 steps
+                break
+        return self._to_pixels(x, y)
+
+    # ---- whole-image distortion -------------------------------------------------------
+
+    @functools.cached_property
+    def _distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        us, vs = np.meshgrid(
+            np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64)
+        )
+        ideal = self.undistort_pixels(np.stack([us.ravel(), vs.ravel()], axis=1))
+        map_x = ideal[:, 0].reshape(self.height, self.width).astype(np.float32)
+        map_y = ideal[:, 1].reshape(self.height, self.width).astype(np.float32)
+        map_x.setflags(write=False)
+        map_y.setflags(write=False)
+        return map_x, map_y
+
+    def distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(map_x, map_y), float32 (height, width), read-only, cached per camera.
+
+        For every pixel of this camera's (distorted) image, its location in the ideal
+        pinhole image of the same K: ``cv2.remap(ideal, map_x, map_y, INTER_LINEAR)``
+        turns an undistorted image into the distorted one. (cv2.initUndistortRectifyMap
+        is the opposite direction.) Without distortion the maps are the identity.
+        """
+        return self._distortion_maps
+
+    @functools.cached_property
+    def ideal_canvas(self) -> IdealCanvas:
+        """The ideal-image region the distorted image sees (see IdealCanvas); cached.
+
+        Barrel distortion (k1 < 0) sees more than the ideal image of the same size, so
+        a renderer must draw a larger undistorted canvas before remapping.
+        """
+        map_x, map_y = self.distortion_maps()
+        mx_w, mx_h = _MAX_CANVAS_MARGIN * self.width, _MAX_CANVAS_MARGIN * self.height
+        mx, my = map_x[np.isfinite(map_x)], map_y[np.isfinite(map_y)]
+        # One pixel of margin for bilinear interpolation; bounded for wild lenses.
+        x0 = int(np.floor(max(float(mx.min()), -mx_w))) - 1
+        y0 = int(np.floor(max(float(my.min()), -mx_h))) - 1
+        x1 = int(np.ceil(min(float(mx.max()), self.width - 1 + mx_w))) + 2
+        y1 = int(np.ceil(min(float(my.max()), self.height - 1 + mx_h))) + 2
+        rx = (map_x - np.float32(x0)).astype(np.float32)
+        ry = (map_y - np.float32(y0)).astype(np.float32)
+        rx.setflags(write=False)
+        ry.setflags(write=False)
+        return IdealCanvas(x0=x0, y0=y0, width=x1 - x0, height=y1 - y0, map_x=rx, map_y=ry)
