@@ -55,11 +55,16 @@ def _synth_frames(args: argparse.Namespace) -> int:
 
     from app.core import scenes
 
+    import dataclasses
+
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
+    scenario = scenes.SCENARIOS[args.scenario]
+    if args.degradation:
+        scenario = dataclasses.replace(scenario, degradation=args.degradation)
     truths = []
     for index in tqdm(range(args.count), desc=f"{args.scenario} frames", unit="frame", disable=args.quiet):
-        image, truth = scenes.scenario_frame(args.scenario, rng, args.width, args.height, args.family)
+        image, truth = scenes.scenario_frame(scenario, rng, args.width, args.height, args.family)
         name = f"{args.scenario}_{index:04d}.png"
         cv2.imwrite(str(args.out / name), image)
         truths.append({"file": name, "camera": truth.camera.to_dict(), **truth.to_dict()})
@@ -135,6 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     frames = kinds.add_parser("frames", help="single frames of a named scenario")
     frames.add_argument("--scenario", default="default", choices=sorted(scenes_names()))
     frames.add_argument("--count", type=int, default=10)
+    frames.add_argument("--degradation", choices=["none", "default", "blur", "dark", "full"],
+                        help="override the scenario's degradation preset")
     frames.set_defaults(run=_synth_frames)
     room = kinds.add_parser("room", help="a room with markers; calibration and tracking walks")
     room.add_argument("--room", default="8x6x3", help="W x D x H in metres")
@@ -145,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     room.add_argument("--k1", type=float, default=-0.12)
     room.add_argument("--k2", type=float, default=0.0)
     room.add_argument("--fps", type=float, default=30.0)
-    room.add_argument("--degradation", default="default", help="none, default, blur, dark or full")
+    room.add_argument("--degradation", default="default", choices=["none", "default", "blur", "dark", "full"])
     room.add_argument("--format", choices=["mp4", "jpeg"], default="mp4")
     room.set_defaults(run=_synth_room)
     for sub in (frames, room):
