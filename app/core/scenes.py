@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -80,6 +80,16 @@ def photo_mosaic(
 
 
 @dataclass(frozen=True, eq=False)
+class CardArtwork:
+    """Other printed artwork on a card of the same size (e.g. an AprilTag or ArUco
+    marker for side-by-side benchmarks): its texture and the four reference points
+    whose projections are its ground truth, in card units."""
+
+    texture: np.ndarray
+    points_uv: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class PlacedTarget:
     """A printed card in the scene.
 
@@ -95,6 +105,7 @@ class PlacedTarget:
     x_axis: np.ndarray
     y_axis: np.ndarray
     bend_m: float = 0.0
+    artwork: CardArtwork | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -119,7 +130,10 @@ class PlacedTarget:
 
     @property
     def discs(self) -> np.ndarray:
-        """3D centres of discs 0..3 (the ground truth of the map)."""
+        """3D centres of discs 0..3 (the ground truth of the map); for other artwork,
+        its reference points."""
+        if self.artwork is not None:
+            return self.point(self.artwork.points_uv)
         return self.point(marker_layout(self.family, self.id).discs)
 
     @property
@@ -127,7 +141,7 @@ class PlacedTarget:
         return self.point(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64))
 
     def quads(self) -> list[TexturedQuad]:
-        texture = card_texture(self.family, self.id)
+        texture = card_texture(self.family, self.id) if self.artwork is None else self.artwork.texture
         px = texture.shape[1]
         quads = []
         for k in range(len(_PANEL_EDGES) - 1):
@@ -575,8 +589,13 @@ def scenario_frame(
     height: int = 480,
     family: str = DEFAULT_FAMILY,
     photos: Sequence[np.ndarray] | None = None,
+    artwork: Callable[[int], CardArtwork] | None = None,
 ) -> tuple[np.ndarray, FrameTruth]:
-    """One rendered frame of a named scenario and its ground truth."""
+    """One rendered frame of a named scenario and its ground truth.
+
+    With ``artwork`` (target id -> CardArtwork) the cards carry other markers in exactly
+    the same places: the same seed gives the same geometry and degradations.
+    """
     spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
     photos = photos if photos is not None else builtin_photos()
     camera = Camera.pinhole(float(rng.uniform(*spec.focal_px)), width, height)
@@ -585,6 +604,8 @@ def scenario_frame(
         rng, camera, n_targets=n, distance_m=spec.distance_m, tilt_deg=spec.tilt_deg,
         marker_size_m=spec.marker_size_m, family=family, photos=photos, clutter_tiles=spec.clutter_tiles,
     )
+    if artwork is not None:
+        scene = Scene(scene.background, [dataclasses.replace(t, artwork=artwork(t.id)) for t in scene.targets])
     degradation = degrade.PRESETS[spec.degradation].sample(rng)
     if spec.specular_on_target and scene.targets:
         truth = target_truth(camera, Pose.identity(), scene.targets[0])
