@@ -1,0 +1,112 @@
+"""Safe decoding of client images (JPEG, PNG) to 8-bit greyscale.
+
+A small file can declare an enormous image (a 631-byte JPEG can claim 30000x30000 and
+make a decoder allocate gigabytes), so the size is read from the header and checked
+before anything is decoded. Truncated files are refused rather than decoded into a
+half-grey frame.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+JPEG_MAGIC = b"\xff\xd8\xff"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# Start-of-frame markers carry the image size (all SOFn except DHT, JPG and DAC).
+_SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+class ImageError(ValueError):
+    """The bytes are not an image this service decodes; ``kind`` says why."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind  # "unsupported", "corrupt", "too_large", "empty"
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    format: str  # "jpeg" or "png"
+    width: int
+    height: int
+
+
+def read_header(data: bytes) -> ImageHeader:
+    """Format and size from the header alone, without decoding pixels."""
+    if not data:
+        raise ImageError("empty", "the image is empty (0 bytes)")
+    if data.startswith(PNG_MAGIC):
+        return _png_header(data)
+    if data.startswith(JPEG_MAGIC):
+        return _jpeg_header(data)
+    raise ImageError("unsupported", "not a JPEG or PNG image (unknown file signature)")
+
+
+def _png_header(data: bytes) -> ImageHeader:
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ImageError("corrupt", "PNG header is truncated or has no IHDR chunk")
+    width, height = struct.unpack(">II", data[16:24])
+    if b"IEND" not in data[-12:]:
+        raise ImageError("corrupt", "PNG is truncated (no IEND chunk at the end)")
+    return ImageHeader("png", int(width), int(height))
+
+
+def _jpeg_header(data: bytes) -> ImageHeader:
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            raise ImageError("corrupt", f"JPEG marker expected at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if length < 2:
+            raise ImageError("corrupt", "JPEG segment with an impossible length")
+        if marker in _SOF_MARKERS:
+            if i + 9 > n:
+                break
+            height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+            if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+                raise ImageError("corrupt", "JPEG is truncated (no end-of-image marker)")
+            return ImageHeader("jpeg", int(width), int(height))
+        i += 2 + length
+    raise ImageError("corrupt", "JPEG header is truncated (no frame header found)")
+
+
+def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarray:
+    """Decode a JPEG or PNG to uint8 greyscale (HxW).
+
+    Greyscale, colour, 4-channel and 16-bit images are accepted and converted. Raises
+    ``ImageError`` for anything else, and for images over ``max_pixels`` before decoding.
+    """
+    header = read_header(data)
+    if header.width <= 0 or header.height <= 0:
+        raise ImageError("empty", f"the image declares a zero size ({header.width}x{header.height})")
+    if header.width > max_side or header.height > max_side or header.width * header.height > max_pixels:
+        raise ImageError(
+            "too_large",
+            f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
+        )
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise ImageError("corrupt", f"the {header.format.upper()} data could not be decoded")
+    if image.shape[0] != header.height or image.shape[1] != header.width:
+        raise ImageError("corrupt", "decoded size differs from the header")
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise ImageError("unsupported", f"{image.dtype} pixels are not supported")
+    if image.ndim == 3:
+        code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(image.shape[2])
+        if code is None:
+            raise ImageError("unsupported", f"{image.shape[2]}-channel images are not supported")
+        image = cv2.cvtColor(image, code)
+    return np.ascontiguousarray(image)

@@ -1,0 +1,82 @@
+"""Client images are decoded safely: sizes checked from the header before decoding."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from app.core.imagecodec import ImageError, decode_gray, read_header
+
+
+def _encode(image: np.ndarray, ext: str) -> bytes:
+    ok, data = cv2.imencode(ext, image)
+    assert ok
+    return data.tobytes()
+
+
+def _giant_jpeg_header(width: int, height: int) -> bytes:
+    """A tiny JPEG whose frame header claims a huge image."""
+    sof = b"\xff\xc0" + struct.pack(">HBHHB", 11, 8, height, width, 1) + b"\x01\x11\x00"
+    return b"\xff\xd8" + sof + b"\xff\xda\x00\x08\x01\x01\x00\x00\x3f\x00" + b"\x00" * 600 + b"\xff\xd9"
+
+
+def _giant_png_header(width: int, height: int) -> bytes:
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    data = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk + struct.pack(">I", zlib.crc32(chunk))
+    idat = b"IDAT" + zlib.compress(b"\x00" * 100)
+    end = b"IEND"
+    return (data + struct.pack(">I", len(idat) - 4) + idat + struct.pack(">I", zlib.crc32(idat))
+            + struct.pack(">I", 0) + end + struct.pack(">I", zlib.crc32(end)))
+
+
+def test_header_sizes_match_the_image() -> None:
+    image = np.random.default_rng(0).integers(0, 255, (37, 53, 3), dtype=np.uint8)
+    for ext, fmt in ((".jpg", "jpeg"), (".png", "png")):
+        header = read_header(_encode(image, ext))
+        assert (header.format, header.width, header.height) == (fmt, 53, 37)
+
+
+@pytest.mark.parametrize("make", [_giant_jpeg_header, _giant_png_header])
+def test_giant_declared_size_is_refused_before_decoding(make) -> None:  # type: ignore[no-untyped-def]
+    data = make(30000, 30000)
+    assert len(data) < 1000
+    with pytest.raises(ImageError) as refused:
+        decode_gray(data, max_pixels=40_000_000)
+    assert refused.value.kind == "too_large"
+
+
+@pytest.mark.parametrize(
+    "data,kind",
+    [(b"", "empty"), (b"hello world", "unsupported"), (b"GIF89a....", "unsupported"),
+     (b"\xff\xd8\xff\xe0\x00\x10JFIF", "corrupt"), (b"\x89PNG\r\n\x1a\n\x00\x00", "corrupt")],
+)
+def test_garbage_is_refused_with_a_reason(data: bytes, kind: str) -> None:
+    with pytest.raises(ImageError) as refused:
+        decode_gray(data, max_pixels=10**7)
+    assert refused.value.kind == kind and str(refused.value)
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_truncated_files_are_refused(ext: str) -> None:
+    data = _encode(np.full((64, 64), 128, np.uint8), ext)
+    with pytest.raises(ImageError):
+        decode_gray(data[: len(data) // 2], max_pixels=10**7)
+
+
+def test_grey_colour_alpha_and_16_bit_images_decode_to_8_bit_grey() -> None:
+    grey = np.tile(np.arange(64, dtype=np.uint8) * 4, (32, 1))
+    variants = {
+        "grey png": _encode(grey, ".png"),
+        "bgr jpeg": _encode(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), ".jpg"),
+        "bgra png": _encode(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA), ".png"),
+        "16-bit png": _encode(grey.astype(np.uint16) * 257, ".png"),
+    }
+    for name, data in variants.items():
+        decoded = decode_gray(data, max_pixels=10**6)
+        assert decoded.dtype == np.uint8 and decoded.shape == (32, 64), name
+        assert np.abs(decoded.astype(int) - grey).max() <= 3, name
