@@ -48,6 +48,9 @@ def _points(X: ArrayLike, dim: int, name: str) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
+_EYE3 = np.eye(3)
+
+
 @dataclass(frozen=True, eq=False)  # eq=False: generated __eq__ on ndarrays is ambiguous
 class Pose:
     """Rigid map-to-camera transform: ``x_cam = R @ X_map + t``."""
@@ -62,7 +65,8 @@ class Pose:
             raise ValueError(f"Pose needs R (3, 3) and t (3,), got {R.shape} and {t.shape}")
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise ValueError("Pose R and t must be finite")
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        # Plain max/det rather than np.allclose: poses are built per frame on the hot path.
+        if np.abs(R @ R.T - _EYE3).max() > 1e-6 or np.linalg.det(R) < 0:
             raise ValueError("Pose R must be a rotation matrix")
         object.__setattr__(self, "R", _readonly(R))
         object.__setattr__(self, "t", _readonly(t))

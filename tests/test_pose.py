@@ -1,0 +1,132 @@
+"""Pose from every visible target: accuracy, robustness, focal length, covariance, refusal."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.camera import Camera, Pose
+from app.core.pose import (
+    METHODS,
+    PoseUndetermined,
+    TargetObservation,
+    cramer_rao_position_rms,
+    estimate_pose,
+)
+from app.core.scenes import PlacedTarget
+
+CAMERA = Camera.pinhole(849.0, 640, 480, dist=[-0.12, 0.02, 0.0005, -0.0003, 0.0])
+
+
+def _target(marker_id: int, centre: list[float], yaw: float, size: float = 0.2) -> PlacedTarget:
+    x = np.array([np.cos(yaw), 0.0, np.sin(yaw)])
+    y = np.array([0.0, 1.0, 0.0])
+    return PlacedTarget(id=marker_id, family="fido3x3", size_m=size, origin=np.array(centre) - size / 2 * (x + y),
+                        x_axis=x, y_axis=y)
+
+
+TARGETS = [_target(0, [-0.6, 0.1, 3.3], 0.3), _target(1, [0.5, 0.3, 3.6], -0.4), _target(2, [0.0, -0.5, 3.0], 0.1),
+           _target(3, [0.9, -0.3, 3.4], 0.5)]
+TRUE_POSE = Pose.from_rvec_tvec(np.array([0.05, -0.1, 0.02]), np.array([0.1, -0.05, 0.2]))
+
+
+def _observe(rng: np.random.Generator, sigma: float, camera: Camera = CAMERA,
+             targets: list[PlacedTarget] = TARGETS) -> list[TargetObservation]:
+    observations = []
+    for t in targets:
+        image = camera.project(TRUE_POSE.transform(t.discs))
+        observations.append(TargetObservation(t.id, image + rng.normal(0, sigma, image.shape), t.discs))
+    return observations
+
+
+def test_noise_free_pose_is_exact_with_distortion() -> None:
+    estimate = estimate_pose(_observe(np.random.default_rng(0), 0.0), CAMERA)
+    np.testing.assert_allclose(estimate.pose.position, TRUE_POSE.position, atol=1e-7)
+    assert estimate.rms_px < 1e-6 and estimate.n_targets == 4 and estimate.n_points == 16
+
+
+def test_nonlinear_reaches_the_cramer_rao_bound_and_beats_the_others() -> None:
+    rng = np.random.default_rng(1)
+    sigma = 0.15
+    errors: dict[str, list[float]] = {m: [] for m in METHODS}
+    for _ in range(200):
+        observations = _observe(rng, sigma)[:3]
+        for method in METHODS:
+            estimate = estimate_pose(observations, CAMERA, method)
+            errors[method].append(float(np.linalg.norm(estimate.pose.position - TRUE_POSE.position)))
+    rms = {m: float(np.sqrt(np.mean(np.square(e)))) for m, e in errors.items()}
+    world = np.concatenate([t.discs for t in TARGETS[:3]])
+    bound = cramer_rao_position_rms(CAMERA, TRUE_POSE, world, sigma)
+    assert rms["nonlinear"] < 1.1 * bound, (rms, bound)
+    assert rms["nonlinear"] < rms["posit"] < rms["single"]
+    assert rms["nonlinear"] < rms["mean"] < rms["single"]
+
+
+def test_a_misidentified_target_is_rejected() -> None:
+    rng = np.random.default_rng(2)
+    observations = _observe(rng, 0.1)
+    # Target 3's discs are attributed to target 1's map position (a misread id).
+    wrong = TargetObservation(1, observations[3].image, TARGETS[1].discs)
+    estimate = estimate_pose([observations[0], wrong, observations[2], observations[3]][:1]
+                             + [observations[2], observations[3], wrong], CAMERA)
+    assert estimate.rejected_ids == [1]
+    assert np.linalg.norm(estimate.pose.position - TRUE_POSE.position) < 0.02
+
+
+def test_a_wrong_disc_does_not_drag_the_pose() -> None:
+    rng = np.random.default_rng(3)
+    observations = _observe(rng, 0.1)
+    broken = observations[2].image.copy()
+    broken[1] += [25.0, -10.0]
+    observations[2] = TargetObservation(2, broken, observations[2].map)
+    estimate = estimate_pose(observations, CAMERA)
+    assert 2 in estimate.rejected_ids
+    assert estimate.rms_px < 0.5
+    assert np.linalg.norm(estimate.pose.position - TRUE_POSE.position) < 0.02
+
+
+def test_focal_length_is_estimated_per_frame() -> None:
+    zoomed = Camera.pinhole(930.0, 640, 480, dist=CAMERA.dist)
+    observations = _observe(np.random.default_rng(4), 0.05, camera=zoomed)
+    fixed = estimate_pose(observations, CAMERA)
+    free = estimate_pose(observations, CAMERA, estimate_focal=True)
+    assert abs(free.focal_px - 930.0) < 5.0
+    assert free.rms_px < 0.2 < fixed.rms_px
+    assert np.linalg.norm(free.pose.position - TRUE_POSE.position) < 0.05
+
+
+def test_covariance_matches_the_observed_scatter() -> None:
+    rng = np.random.default_rng(5)
+    positions, predicted = [], []
+    for _ in range(300):
+        estimate = estimate_pose(_observe(rng, 0.2)[:3], CAMERA)
+        positions.append(estimate.pose.position)
+        predicted.append(np.trace(estimate.covariance_position))
+    observed = np.trace(np.cov(np.array(positions).T))
+    assert 0.75 < np.mean(predicted) / observed < 1.33, (np.mean(predicted), observed)
+
+
+@pytest.mark.parametrize(
+    "observations,message",
+    [
+        ([], "no identified target"),
+        ([TargetObservation(0, np.zeros((3, 2)), np.zeros((3, 3)))], "at least 4"),
+        ([TargetObservation(0, np.array([[100, 100], [200, 100], [300, 100], [400, 100.0]]),
+                            np.array([[0, 0, 3.0], [0.1, 0, 3], [0.2, 0, 3], [0.3, 0, 3]]))], "collinear"),
+    ],
+)
+def test_undetermined_poses_are_refused(observations: list[TargetObservation], message: str) -> None:
+    with pytest.raises(PoseUndetermined, match=message):
+        estimate_pose(observations, CAMERA)
+
+
+def test_focal_from_a_single_target_is_refused() -> None:
+    with pytest.raises(PoseUndetermined, match="focal"):
+        estimate_pose(_observe(np.random.default_rng(6), 0.1)[:1], CAMERA, estimate_focal=True)
+
+
+def test_every_method_handles_a_single_target() -> None:
+    observations = _observe(np.random.default_rng(7), 0.05)[:1]
+    for method in METHODS:
+        estimate = estimate_pose(observations, CAMERA, method)
+        assert np.linalg.norm(estimate.pose.position - TRUE_POSE.position) < 0.3, method
