@@ -74,7 +74,8 @@ def _stack(observations: Sequence[TargetObservation]) -> tuple[np.ndarray, np.nd
     return image, world, owner
 
 
-def _check_determined(world: np.ndarray) -> None:
+def _check_determined(world: np.ndarray) -> np.ndarray:
+    """Refuse undetermined point sets; return the singular values of their spread."""
     if len(world) < 4:
         raise PoseUndetermined(f"{len(world)} points: at least 4 (one whole target) are needed")
     if not np.isfinite(world).all():
@@ -82,6 +83,7 @@ def _check_determined(world: np.ndarray) -> None:
     spread = np.linalg.svd(world - world.mean(axis=0), compute_uv=False)
     if spread[1] < 1e-6 * max(spread[0], 1e-12):
         raise PoseUndetermined("the points are collinear (or coincide): the pose is not determined")
+    return spread
 
 
 def _ideal(camera: Camera, image: np.ndarray) -> np.ndarray:
@@ -171,9 +173,11 @@ def _jacobian(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray,
 
 
 def _estimate(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray, with_focal: bool,
-              method: str, ids: list[int], rejected: list[int]) -> PoseEstimate:
-    """Package a pose with its residual RMS and covariance (noise from the residuals)."""
-    residual, J = _jacobian(camera, pose, world, image, with_focal)
+              method: str, ids: list[int], rejected: list[int],
+              linearised: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
+    """Package a pose with its residual RMS and covariance (noise from the residuals).
+    ``linearised`` = (residual, J) at ``pose`` when the caller has them already."""
+    residual, J = linearised if linearised is not None else _jacobian(camera, pose, world, image, with_focal)
     JtJ = J.T @ J
     dof = residual.size - JtJ.shape[0]
     sigma2 = float((residual**2).sum() / dof) if dof > 0 else float("nan")
@@ -195,15 +199,15 @@ def _estimate(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray, 
     )
 
 
-def _fit(camera: Camera, world: np.ndarray, image: np.ndarray) -> Pose:
+def _fit(camera: Camera, world: np.ndarray, image: np.ndarray, spread: np.ndarray | None = None) -> Pose:
     """A global initial pose, then OpenCV's LM with the full lens model.
 
     Coplanar points (one target, or targets on one wall) have two nearly equally good
     poses when seen small; IPPE gives both, and the better after refinement wins.
     Otherwise SQPnP, which is global for any configuration.
     """
-    centred = world - world.mean(axis=0)
-    spread = np.linalg.svd(centred, compute_uv=False)
+    if spread is None:
+        spread = np.linalg.svd(world - world.mean(axis=0), compute_uv=False)
     if spread[2] < 1e-4 * spread[0]:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(world, image, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
         starts = list(zip(rvecs, tvecs, strict=True))
@@ -246,13 +250,17 @@ def nonlinear(
     LM.
     """
     image, world, owner = _stack(observations)
-    _check_determined(world)
+    spread = _check_determined(world)
     if estimate_focal and len(observations) < 2:
         raise PoseUndetermined("estimating the focal length needs at least 2 targets")
     n = len(observations)
     inliers = np.ones(n, bool)
-    pose = _fit(camera, world, image)
-    if n >= 2 and _worst_per_target(camera, pose, world, image, owner, n).max() > outlier_px:
+    pose = _fit(camera, world, image, spread)
+    linearised = _jacobian(camera, pose, world, image, False)
+    worst = np.zeros(n)
+    np.maximum.at(worst, owner, np.linalg.norm(linearised[0], axis=1))
+    if n >= 2 and worst.max() > outlier_px:
+        linearised = None
         if n >= 3:
             inliers = _consensus(observations, camera, image, world, owner, outlier_px)
         keep = inliers[owner]
@@ -270,9 +278,10 @@ def nonlinear(
     if estimate_focal:
         pose, focal = refine_with_focal(camera, pose, world, image)
         camera = _camera_with_focal(camera, focal)
+        linearised = None
     ids = [o.id for o, k in zip(observations, inliers, strict=True) if k]
     rejected = [o.id for o, k in zip(observations, inliers, strict=True) if not k]
-    return _estimate(camera, pose, world, image, estimate_focal, "nonlinear", ids, rejected)
+    return _estimate(camera, pose, world, image, estimate_focal, "nonlinear", ids, rejected, linearised)
 
 
 def _consensus(observations: Sequence[TargetObservation], camera: Camera, image: np.ndarray, world: np.ndarray,
