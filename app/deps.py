@@ -9,6 +9,7 @@ from fastapi import Depends, Request
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session
 
+from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.settings import Settings
 
@@ -30,7 +31,12 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+def get_jobs(request: Request) -> JobRunner:
+    return request.app.state.jobs
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
 SessionDep = Annotated[Session, Depends(get_session)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+JobsDep = Annotated[JobRunner, Depends(get_jobs)]

@@ -16,8 +16,9 @@ from fastapi.responses import JSONResponse
 
 from app import __version__
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.routers import environments, health, markers
+from app.routers import environments, health, jobs, markers
 from app.services.errors import ServiceError
+from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.settings import Settings
 
@@ -30,11 +31,17 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
+    sessions = make_sessionmaker(engine)
+    runner = JobRunner(settings.resolved_database_url, settings.sqlite_busy_timeout_ms, settings.data_dir,
+                       sessions, settings.max_concurrent_jobs)
+    runner.start()
     app.state.engine = engine
-    app.state.sessionmaker = make_sessionmaker(engine)
+    app.state.sessionmaker = sessions
+    app.state.jobs = runner
     try:
         yield
     finally:
+        runner.shutdown()
         engine.dispose()
 
 
@@ -74,6 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(environments.router)
     app.include_router(markers.router)
+    app.include_router(jobs.router)
     return app
 
 

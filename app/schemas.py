@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -150,6 +150,84 @@ class MarkerLayoutOut(BaseModel):
     discs: list[list[float]] = Field(description="Disc centres in card units, card spans 0..1.")
     disc_radius: float
     code: list[list[int]]
+
+
+# --- jobs and classifiers -----------------------------------------------------------
+
+
+class JobOut(BaseModel):
+    """A long piece of work: its stage and progress while it runs, its result after."""
+
+    id: str
+    kind: str
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float = Field(ge=0, le=1)
+    stage: str
+    message: str
+    environment_id: int | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    result: dict[str, Any] | None
+    error: str | None
+
+    _tz = field_validator("created_at", "started_at", "finished_at")(_aware)
+
+
+class ClassifierOut(BaseModel):
+    """A trained disc detector: stage-1 parameters and condensed prototypes."""
+
+    id: int
+    name: str
+    is_default: bool
+    source: str
+    training_job_id: str | None
+    created_at: datetime
+    training_stats: dict[str, Any]
+
+    _tz = field_validator("created_at")(_aware)
+
+
+# --- detection ----------------------------------------------------------------------
+
+
+class DetectedTargetOut(BaseModel):
+    id: int
+    discs: list[list[float]] = Field(description="Disc centres [u, v] in pixels, DESIGN.md order.")
+    score: float
+
+
+class DetectResponse(BaseModel):
+    width: int
+    height: int
+    targets: list[DetectedTargetOut]
+    candidates: list[list[float]] | None = Field(
+        None, description="With ?candidates=true: every disc that passed the classifier, [u, v, radius, score]."
+    )
+    classifier_id: int
+    timing_ms: dict[str, float]
+
+
+class PoseOut(BaseModel):
+    R: list[list[float]]
+    t: list[float]
+    position: list[float] = Field(description="Camera centre in map coordinates, -R^T t (m).")
+    reprojection_rms_px: float
+    n_targets: int
+    n_points: int
+    covariance_position: list[list[float]]
+    focal_px: float
+    method: str
+    rejected_targets: list[int]
+
+
+class LocateResponse(BaseModel):
+    width: int
+    height: int
+    targets: list[DetectedTargetOut]
+    pose: PoseOut | None
+    pose_error: str | None = Field(None, description="Why there is no pose, when there is none.")
+    timing_ms: dict[str, float]
 
 
 # --- health -------------------------------------------------------------------------

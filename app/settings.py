@@ -26,6 +26,9 @@ class Settings(BaseSettings):
     max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description="Largest single image or frame.")
     max_image_pixels: int = Field(40_000_000, ge=64 * 64, description="Largest width*height decoded.")
     max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame.")
+    max_training_images: int = Field(200, ge=1, description="Most images in one training upload.")
+    track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
+    max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
 
     @computed_field  # type: ignore[prop-decorator]
     @property

@@ -255,6 +255,16 @@ class Camera:
         except KeyError as e:
             raise ValueError(f"camera document lacks {e.args[0]!r}") from None
 
+    def scaled_to(self, width: int, height: int) -> Camera:
+        """The same lens at another resolution (a stream downscaled by the client):
+        pixel-centre coordinates scale about the top-left pixel's corner (-0.5, -0.5)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, 0], K[0, 1], K[1, 1] = K[0, 0] * sx, K[0, 1] * sx, K[1, 1] * sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return Camera(K, self.dist, int(width), int(height))
+
     # ---- parameters -------------------------------------------------------------------
 
     @property

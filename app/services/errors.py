@@ -20,3 +20,15 @@ class Invalid(ServiceError):
     the environment's marker family)."""
 
     status_code = 422
+
+
+class TooLarge(ServiceError):
+    status_code = 413
+
+
+class UnsupportedMedia(ServiceError):
+    status_code = 415
+
+
+class Conflict(ServiceError):
+    status_code = 409
