@@ -8,7 +8,7 @@ from sqlalchemy.orm import Session
 from app.core.markers import get_family
 from app.models import Classifier, Environment, SurveyMap
 from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument
-from app.services.errors import Invalid, NotFound
+from app.services.errors import Invalid, NotFound, get_or_404
 
 
 def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
@@ -25,10 +25,7 @@ def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
 
 
 def _environment(session: Session, environment_id: int) -> Environment:
-    environment = session.get(Environment, environment_id)
-    if environment is None:
-        raise NotFound(f"environment {environment_id} not found")
-    return environment
+    return get_or_404(session, Environment, environment_id, "environment")
 
 
 def _has_map(session: Session, environment_id: int) -> bool:

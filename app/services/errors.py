@@ -1,5 +1,11 @@
 """Service-level failures; ``app.main`` maps them to HTTP replies."""
 
+from typing import TypeVar
+
+from sqlalchemy.orm import Session
+
+T = TypeVar("T")
+
 
 class ServiceError(Exception):
     """Base of the errors a client caused; ``status_code`` is the HTTP status."""
@@ -32,3 +38,11 @@ class UnsupportedMedia(ServiceError):
 
 class Conflict(ServiceError):
     status_code = 409
+
+
+def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
+    """The row of ``model`` with primary key ``key``, or NotFound("<what> <key> not found")."""
+    row = session.get(model, key)
+    if row is None:
+        raise NotFound(f"{what} {key} not found")
+    return row

@@ -30,7 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.db import make_engine, make_sessionmaker, utcnow
 from app.models import Job
 from app.schemas import JobOut
-from app.services.errors import NotFound
+from app.services.errors import get_or_404
 
 log = logging.getLogger(__name__)
 
@@ -71,10 +71,7 @@ def new_job_id() -> str:
 
 
 def get(session: Session, job_id: str) -> Job:
-    job = session.get(Job, job_id)
-    if job is None:
-        raise NotFound(f"job {job_id} not found")
-    return job
+    return get_or_404(session, Job, job_id, "job")
 
 
 def cancel(session: Session, job_id: str) -> Job:
