@@ -1,0 +1,383 @@
+"""Peer detectors for the side-by-side detection benchmark (issue 4), on a common footing.
+
+Every detector here is an object with
+
+* ``name`` - the row label of the benchmark table;
+* ``artwork`` - ``None`` for our own cards, else ``id -> CardArtwork``: what is printed on
+  the card when this detector is measured (``app.core.scenes.scenario_frame(..., artwork=)``
+  then renders the same geometry and degradations with that artwork in place of ours);
+* ``available`` / ``reason`` - whether it can run here (our own detector and the blob
+  baseline need ``app/core/candidates.py`` and ``app/core/targets.py``);
+* ``detect(gray) -> list[(id, points (4, 2))]`` - points in pixels (DESIGN.md convention:
+  centre of the top-left pixel at (0, 0)) in the order 0 top-left, 1 top-right,
+  2 bottom-right, 3 bottom-left *as printed*: our disc centres, or the four outer corners
+  of a tag's black square (the projections of ``CardArtwork.points_uv``).
+
+Artwork (same printed card side as ours, white card, marker centred):
+
+* The tag's outer black square spans 0.075..0.925 of the card, the outer extent of our
+  discs (0.2 +- 0.125), so every marker gets the same printed footprint; the white margin
+  of the card is the tag's quiet zone.
+* Textures are 480 px (as our cards in the simulator) and built by nearest-neighbour
+  upscaling of the bit grid by an integer factor (51 px per AprilTag cell, 68 px per ArUco
+  cell), so every edge falls on a texel edge: the renderer's area sampling is then exact.
+
+Detectors:
+
+* AprilTag 3 via ``pupil_apriltags.Detector(families="tag36h11", nthreads=1,
+  quad_decimate=1.0 | 2.0, refine_edges=1)``, other settings at their defaults
+  (``decode_sharpening=0.25``, up to 2 corrected bits). apriltag reports coordinates with
+  the centre of the top-left pixel at (0.5, 0.5); we subtract 0.5 (a convention, not an
+  error of the detector). Its corners wrap the other way round from ours (for a tag as
+  printed: TR, TL, BL, BR); we reorder them.
+* OpenCV ArUco (``cv2.aruco.ArucoDetector``, default ``DetectorParameters``, optionally
+  ``cornerRefinementMethod=CORNER_REFINE_SUBPIX``). Dictionary: OpenCV's 4x4 markers, the
+  fewest bits per side of the standard dictionaries, so the biggest cells for a given
+  printed size - the fairest choice for small and far markers. ``DICT_4X4_50`` has only 50
+  ids but our family has 60, so we use the first 60 of OpenCV's 4x4 list (ids 0-49 are
+  exactly ``DICT_4X4_50``, 50-59 the next ones of ``DICT_4X4_100``) with the same
+  ``maxCorrectionBits`` (1) as those dictionaries. Corners come as TL, TR, BR, BL.
+* The blob baseline: our own cards, disc candidates from an adaptive threshold and
+  connected components (dark, filled, elliptical blobs) instead of the learned classifier,
+  then the same ``assemble_targets`` grouping, verification and identification as our
+  detector - what the learned candidate stage buys.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from app.core.markers import DEFAULT_FAMILY, get_family, marker_layout
+from app.core.scenes import CARD_TEXTURE_PX, CardArtwork, FrameTruth
+
+Detection = tuple[int, np.ndarray]
+
+#: The outer extent of our discs across the card (0.2 - 0.125 .. 0.8 + 0.125): a tag's
+#: black square occupies exactly this span.
+TAG_LO, TAG_HI = 0.075, 0.925
+TAG_CORNERS_UV = np.array([[TAG_LO, TAG_LO], [TAG_HI, TAG_LO], [TAG_HI, TAG_HI], [TAG_LO, TAG_HI]], np.float64)
+TAG_CORNERS_UV.setflags(write=False)
+
+N_IDS = len(get_family(DEFAULT_FAMILY))  # 60: every id a fido3x3 scene may draw
+
+
+# --------------------------------------------------------------------------------------
+# Artwork
+# --------------------------------------------------------------------------------------
+
+
+@functools.cache
+def apriltag_dictionary() -> cv2.aruco.Dictionary:
+    return cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+
+
+@functools.cache
+def aruco_dictionary(n_ids: int = N_IDS) -> cv2.aruco.Dictionary:
+    """The first ``n_ids`` of OpenCV's 4x4 markers (= DICT_4X4_50 for ids < 50)."""
+    base = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_1000)
+    reference = cv2.aruco.getPredefinedDictionary(
+        cv2.aruco.DICT_4X4_50 if n_ids <= 50 else cv2.aruco.DICT_4X4_100 if n_ids <= 100 else cv2.aruco.DICT_4X4_1000
+    )
+    return cv2.aruco.Dictionary(np.ascontiguousarray(base.bytesList[:n_ids]), 4, reference.maxCorrectionBits)
+
+
+def tag_artwork(dictionary: cv2.aruco.Dictionary, marker_id: int, card_px: int = CARD_TEXTURE_PX) -> CardArtwork:
+    """A white card with the marker's black square over 0.075..0.925 of its side.
+
+    The bit grid (black border included) is upscaled by an integer factor with
+    nearest-neighbour sampling, so all edges lie on texel edges.
+    """
+    cells = dictionary.markerSize + 2  # one black border cell each side
+    grid = cv2.aruco.generateImageMarker(dictionary, int(marker_id), cells)  # one pixel per cell
+    lo, hi = round(TAG_LO * card_px), round(TAG_HI * card_px)
+    if abs(lo - TAG_LO * card_px) > 1e-9 or (hi - lo) % cells:
+        raise ValueError(f"card_px {card_px} does not put the {cells} cells on texel edges")
+    scale = (hi - lo) // cells
+    texture = np.ones((card_px, card_px), np.float32)
+    texture[lo:hi, lo:hi] = np.kron(grid.astype(np.float32) / 255.0, np.ones((scale, scale), np.float32))
+    texture.setflags(write=False)
+    return CardArtwork(texture=texture, points_uv=TAG_CORNERS_UV)
+
+
+@functools.cache
+def apriltag_artwork(marker_id: int) -> CardArtwork:
+    """AprilTag tag36h11 ``marker_id`` on our card (8 cells of 51 texels)."""
+    return tag_artwork(apriltag_dictionary(), marker_id)
+
+
+@functools.cache
+def aruco_artwork(marker_id: int) -> CardArtwork:
+    """ArUco 4x4 ``marker_id`` on our card (6 cells of 68 texels)."""
+    return tag_artwork(aruco_dictionary(), marker_id)
+
+
+# --------------------------------------------------------------------------------------
+# Detectors
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class PeerDetector:
+    name: str
+    artwork: Callable[[int], CardArtwork] | None
+    available: bool = True
+    reason: str = ""
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+# pupil_apriltags corners for a tag as printed come as TR, TL, BL, BR: this picks
+# TL, TR, BR, BL out of them.
+_APRILTAG_ORDER = np.array([1, 0, 3, 2])
+
+
+@dataclass
+class AprilTagDetector(PeerDetector):
+    quad_decimate: float = 1.0
+    _detector: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        try:
+            import pupil_apriltags
+        except ImportError as exc:  # pragma: no cover - the bench extra is installed
+            self.available, self.reason = False, f"n/a (pupil-apriltags: {exc})"
+            return
+        self._detector = pupil_apriltags.Detector(
+            families="tag36h11", nthreads=1, quad_decimate=self.quad_decimate, refine_edges=1
+        )
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:
+        found = self._detector.detect(np.ascontiguousarray(gray, dtype=np.uint8))
+        return [(int(d.tag_id), np.asarray(d.corners, np.float64)[_APRILTAG_ORDER] - 0.5) for d in found]
+
+
+@dataclass
+class ArucoDetector(PeerDetector):
+    refinement: str = "none"  # "none" (OpenCV's default) or "subpix"
+    _detector: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = {
+            "none": cv2.aruco.CORNER_REFINE_NONE, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+        }[self.refinement]
+        self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(), params)
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:
+        corners, ids, _ = self._detector.detectMarkers(gray)
+        if ids is None:
+            return []
+        return [(int(i), np.asarray(c, np.float64).reshape(4, 2)) for i, c in zip(ids.ravel(), corners, strict=True)]
+
+
+def _import(module: str) -> Any:
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name == module:
+            return None
+        raise
+
+
+@dataclass
+class FidoDetector(PeerDetector):
+    """Our detector: ``app.core.detector.Detector`` if present, else the learned
+    candidates (``app.core.candidates``) and ``app.core.targets.assemble_targets``."""
+
+    family: str = DEFAULT_FAMILY
+    _detect: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        candidates = _import("app.core.candidates")
+        targets = _import("app.core.targets")
+        if candidates is None:
+            self.available, self.reason = False, "n/a (candidates.py missing)"
+            return
+        if targets is None:
+            self.available, self.reason = False, "n/a (targets.py missing)"
+            return
+        try:  # half-written modules must not stop the peers' rows
+            classifier = candidates.load_default_classifier()
+            detector = _import("app.core.detector")
+            if detector is not None and hasattr(detector, "Detector"):
+                self._detect = detector.Detector(classifier, self.family).detect
+            else:
+                self._detect = lambda gray: targets.assemble_targets(
+                    gray, candidates.find_candidates(gray, classifier), family=self.family
+                )
+        except Exception as exc:
+            self.available, self.reason = False, f"n/a ({exc!r})"
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:
+        found = self._detect(gray)
+        found = getattr(found, "targets", found)  # Detector.detect -> Detection(targets=...)
+        return [(int(t.id), np.asarray(t.discs, np.float64).reshape(4, 2)) for t in found]
+
+
+# --- plain threshold-and-blob baseline ------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BlobParams:
+    """Parameters of the plain disc-candidate finder: one setting for every condition.
+
+    Chosen on a small sweep (block 31/51/81 px x C 3/5/7/10, 25 frames of each condition,
+    seeds apart from the benchmark's): every setting finds 93-100% of the true discs
+    within a quarter diameter in default, far, blur and clutter with ~80-200 candidates a
+    frame; 51/5 keeps 97% in dark, where larger C loses discs.
+    """
+
+    block_size: int = 51  # adaptive-threshold window (px): wider than the nearest discs
+    c: float = 5.0  # a pixel is "dark" when this much below its local mean
+    min_area: int = 6  # px: discs of ~3 px diameter and up
+    max_area: int = 4000  # px: discs up to ~70 px across
+    min_axis_ratio: float = 0.3  # minor / major axis: tilts up to ~70 degrees
+    min_fill: float = 0.75  # pixel count / area of the moment ellipse (solid ellipse ~1)
+
+
+def blob_candidates(gray: np.ndarray, params: BlobParams = BlobParams()) -> np.ndarray:
+    """Dark roundish blobs as disc candidates: (N, 4) float64 ``[u, v, radius, score]``.
+
+    Adaptive mean threshold, 8-connected components, and per component its second
+    moments: a solid ellipse fills the ellipse of its moments (area = 4 pi sqrt(det C));
+    code cells (squares), merged blobs and thin structures do not. ``radius`` is the
+    radius of the circle of the same area, ``score`` in (0, 1] how ellipse-like the blob
+    is; the centre is the blob's binary centroid.
+    """
+    gray = np.asarray(gray)
+    dark = cv2.adaptiveThreshold(gray, 1, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
+                                 params.block_size, params.c)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(dark, connectivity=8, ltype=cv2.CV_32S)
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+    keep = (area >= params.min_area) & (area <= params.max_area)
+    keep[0] = False
+    # Blobs touching the image border are cut: their moments say nothing.
+    x0, y0 = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    x1, y1 = x0 + stats[:, cv2.CC_STAT_WIDTH], y0 + stats[:, cv2.CC_STAT_HEIGHT]
+    keep &= (x0 > 0) & (y0 > 0) & (x1 < gray.shape[1]) & (y1 < gray.shape[0])
+    if not keep.any():
+        return np.zeros((0, 4))
+    ys, xs = np.nonzero(dark)
+    lab = labels[ys, xs]
+    sel = keep[lab]
+    lab, xs, ys = lab[sel], xs[sel].astype(np.float64), ys[sel].astype(np.float64)
+    dx, dy = xs - centroids[lab, 0], ys - centroids[lab, 1]
+    sxx = np.bincount(lab, dx * dx, minlength=n)
+    syy = np.bincount(lab, dy * dy, minlength=n)
+    sxy = np.bincount(lab, dx * dy, minlength=n)
+    idx = np.flatnonzero(keep)
+    a = area[idx]
+    cxx, cyy, cxy = sxx[idx] / a + 1 / 12, syy[idx] / a + 1 / 12, sxy[idx] / a  # + pixel extent
+    det = np.maximum(cxx * cyy - cxy * cxy, 1e-12)
+    half_tr = (cxx + cyy) / 2
+    disc = np.sqrt(np.maximum(half_tr**2 - det, 0.0))
+    ratio = np.sqrt(np.maximum(half_tr - disc, 0.0) / (half_tr + disc))
+    fill = a / (4 * np.pi * np.sqrt(det))  # 1 for a solid ellipse, less for a square or ring
+    score = np.clip(np.minimum(fill, 1 / fill), 0, 1)
+    ok = (ratio >= params.min_axis_ratio) & (score >= params.min_fill)
+    radius = np.sqrt(a / np.pi)
+    out = np.column_stack([centroids[idx, 0], centroids[idx, 1], radius, score])[ok]
+    return out[np.argsort(-out[:, 3], kind="stable")]
+
+
+@dataclass
+class BlobBaseline(PeerDetector):
+    family: str = DEFAULT_FAMILY
+    params: BlobParams = field(default_factory=BlobParams)
+    _assemble: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        targets = _import("app.core.targets")
+        if targets is None or not hasattr(targets, "assemble_targets"):
+            self.available, self.reason = False, "n/a (targets.py missing)"
+            return
+        self._assemble = targets.assemble_targets
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:
+        found = self._assemble(gray, blob_candidates(gray, self.params), family=self.family)
+        return [(int(t.id), np.asarray(t.discs, np.float64).reshape(4, 2)) for t in found]
+
+
+def all_detectors(family: str = DEFAULT_FAMILY) -> list[PeerDetector]:
+    """The benchmark's rows: ours, the blob baseline, AprilTag 3 (two decimations) and
+    ArUco (two corner refinements). Unavailable ones carry ``available=False`` and a
+    ``reason``."""
+    return [
+        FidoDetector("fidotrack (learned)", None, family=family),
+        BlobBaseline("threshold+blob baseline", None, family=family),
+        AprilTagDetector("AprilTag 3 tag36h11, decimate 1", apriltag_artwork, quad_decimate=1.0),
+        AprilTagDetector("AprilTag 3 tag36h11, decimate 2", apriltag_artwork, quad_decimate=2.0),
+        ArucoDetector("ArUco 4x4, default (no refine)", aruco_artwork, refinement="none"),
+        ArucoDetector("ArUco 4x4, subpix refine", aruco_artwork, refinement="subpix"),
+    ]
+
+
+# --------------------------------------------------------------------------------------
+# Ground truth per card (shared by the benchmark and the tests)
+# --------------------------------------------------------------------------------------
+
+BORDER_PX = 2.0  # as the simulator's visibility test
+UNIT_SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+
+
+@dataclass(frozen=True)
+class TruthCard:
+    id: int
+    points: np.ndarray  # (4, 2) true reference points (px)
+    counted: bool  # visible, and not covered by a nearer card
+    centre: np.ndarray  # card centre (px)
+    side_px: float  # mean side of the imaged card (px)
+    disc_px: float
+
+
+def _points_uv(artwork: Callable | None, marker_id: int) -> np.ndarray:
+    if artwork is None:
+        return np.asarray(marker_layout(DEFAULT_FAMILY, marker_id).discs, np.float64)
+    return np.asarray(artwork(marker_id).points_uv, np.float64)
+
+
+def truth_cards(truth: FrameTruth, artwork: Callable | None) -> list[TruthCard]:
+    """The frame's true targets, with the card outline recovered from the reference
+    points (the cards of these scenes are flat) to find cards hidden behind nearer ones:
+    the simulator's ``visible`` does not look at other cards.
+
+    A target is counted when the simulator calls it visible, the square 0.075..0.925 of
+    the card (a tag's black square, our discs' outer extent) lies inside the image, and
+    no nearer card overlaps that square. The test is the same whatever the artwork, so
+    every detector is counted on the same targets."""
+    size = np.array([truth.camera.width, truth.camera.height], np.float64)
+    geo = []
+    for t in truth.targets:
+        if not np.isfinite(t.discs_px).all():
+            geo.append(None)
+            continue
+        h = cv2.getPerspectiveTransform(_points_uv(artwork, t.id).astype(np.float32), t.discs_px.astype(np.float32))
+        card = cv2.perspectiveTransform(UNIT_SQUARE[None], h)[0]
+        inner = cv2.perspectiveTransform(TAG_CORNERS_UV[None], h)[0]
+        geo.append((card, inner))
+    cards = []
+    for i, t in enumerate(truth.targets):
+        g = geo[i]
+        if g is None:
+            cards.append(TruthCard(t.id, t.discs_px, False, np.array([np.nan, np.nan]), 0.0, t.disc_diameter_px))
+            continue
+        card, inner = g
+        covered = False
+        for j, other in enumerate(truth.targets):
+            if j == i or geo[j] is None or other.distance_m >= t.distance_m:
+                continue
+            area, _ = cv2.intersectConvexConvex(inner.astype(np.float32), geo[j][0].astype(np.float32))
+            covered |= area > 0
+        side = float(np.mean(np.linalg.norm(card - np.roll(card, -1, axis=0), axis=1)))
+        inside = bool(((inner >= BORDER_PX) & (inner <= size - 1 - BORDER_PX)).all())
+        cards.append(TruthCard(t.id, t.discs_px, bool(t.visible and inside and not covered), card.mean(axis=0), side,
+                               t.disc_diameter_px))
+    return cards
