@@ -33,7 +33,7 @@ def clean_frames() -> list[tuple[np.ndarray, np.ndarray]]:
     return _frames("clean", 4, seed=2024)
 
 
-def test_finds_every_disc_in_clean_frames(classifier: DiscClassifier, clean_frames) -> None:  # type: ignore[no-untyped-def]
+def test_finds_every_disc_in_clean_frames(classifier: DiscClassifier, clean_frames: list) -> None:
     n_discs = 0
     for image, discs in clean_frames:
         found = find_candidates(image, classifier)
@@ -50,7 +50,7 @@ def test_finds_every_disc_in_clean_frames(classifier: DiscClassifier, clean_fram
     assert n_discs >= 12
 
 
-def test_one_candidate_per_disc(classifier: DiscClassifier, clean_frames) -> None:  # type: ignore[no-untyped-def]
+def test_one_candidate_per_disc(classifier: DiscClassifier, clean_frames: list) -> None:
     for image, discs in clean_frames:
         found = find_candidates(image, classifier)
         for u, v, diameter in discs:
@@ -58,7 +58,7 @@ def test_one_candidate_per_disc(classifier: DiscClassifier, clean_frames) -> Non
             assert near.sum() == 1, f"{near.sum()} candidates on the disc at ({u:.1f}, {v:.1f})"
 
 
-def test_candidates_sorted_by_score_and_inside_image(classifier: DiscClassifier, clean_frames) -> None:  # type: ignore[no-untyped-def]
+def test_candidates_sorted_by_score_and_inside_image(classifier: DiscClassifier, clean_frames: list) -> None:
     image, _ = clean_frames[0]
     found = find_candidates(image, classifier)
     assert np.all(np.diff(found[:, 3]) <= 0)
@@ -84,6 +84,18 @@ def test_stage1_rejects_almost_every_window(classifier: DiscClassifier) -> None:
     a = cand.stage1_windows(image, classifier, apply_screen=False)
     assert len(a) >= len(s1)
     assert a.windows.shape[1:] == (cand.WINDOW, cand.WINDOW) and a.windows.dtype == np.uint8
+
+
+def test_stage1_alone_on_one_level(classifier: DiscClassifier) -> None:
+    image, _ = _frames("default", 1, seed=3)[0]
+    score = cand.stage1_scores(image)
+    assert score.shape == (image.shape[0] + 1, image.shape[1] + 1) and score.dtype == np.float32
+    assert np.all(np.isfinite(score)) and score.max() <= 1.0
+    thr = float(classifier.blob_thresholds[0])
+    mask = cand.stage1_mask(image, thr)
+    a = cand.stage1_windows(image, classifier, apply_screen=False)
+    assert mask.sum() == np.sum(a.level == 0)
+    assert np.all(score[mask] > thr)
 
 
 def _heldout_windows(classifier: DiscClassifier) -> tuple[np.ndarray, np.ndarray]:
@@ -127,7 +139,7 @@ def test_hart_condensing_is_consistent_and_agrees_with_full_1nn() -> None:
     Gates' reduction keeps the training consistency."""
     rng = np.random.default_rng(5)
     image, truth = training.safe_scenario_frame("default", rng)
-    blob = (0.25, 0.18, 0.18, 0.18)
+    blob = (0.25, 0.16, 0.16, 0.16)
     fw = training.frame_windows(image, training.visible_discs(truth), training.all_discs(truth), blob, None, rng)
     photo = training.degrade.to_uint8(training.scenes.builtin_photos()[0])
     fw2 = training.frame_windows(photo, np.zeros((0, 3)), np.zeros((0, 3)), blob, None, rng)
@@ -145,7 +157,8 @@ def test_hart_condensing_is_consistent_and_agrees_with_full_1nn() -> None:
     reduced = cand.reduce_store(x[train], y[train], store)
     assert reduced.size <= store.size
     assert np.array_equal(cand.nn_predict(x[train], x[train][reduced], y[train][reduced]), y[train])
-    agree = np.mean(cand.nn_predict(x[test], x[train], y[train]) == cand.nn_predict(x[test], x[train][store], y[train][store]))
+    full_test = cand.nn_predict(x[test], x[train], y[train])
+    agree = np.mean(full_test == cand.nn_predict(x[test], x[train][store], y[train][store]))
     assert agree > 0.85
 
 
@@ -159,7 +172,7 @@ def test_shipped_statistics(classifier: DiscClassifier) -> None:
     json.dumps(s)
 
 
-def test_round_trip_gives_identical_candidates(classifier: DiscClassifier, clean_frames) -> None:  # type: ignore[no-untyped-def]
+def test_round_trip_gives_identical_candidates(classifier: DiscClassifier, clean_frames: list) -> None:
     arrays = classifier.to_arrays()
     for name, a in arrays.items():
         assert isinstance(a, np.ndarray) and a.dtype != object, name
@@ -189,7 +202,7 @@ def test_from_arrays_rejects_bad_arrays(classifier: DiscClassifier) -> None:
         DiscClassifier.from_arrays(bad, {})
 
 
-def test_bgr_input_matches_grey(classifier: DiscClassifier, clean_frames) -> None:  # type: ignore[no-untyped-def]
+def test_bgr_input_matches_grey(classifier: DiscClassifier, clean_frames: list) -> None:
     image, _ = clean_frames[2]
     bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     assert np.array_equal(find_candidates(bgr, classifier), find_candidates(image, classifier))

@@ -17,20 +17,29 @@ Stage 1 is a cascade of two cheap tests:
     spot narrower than the window is filled, an edge or a large dark area is not), its
     4x4 centre mean minus its 12x12 window mean (the dark mass must sit in the middle of
     the window), divided by the window's grey-level range (invariant to gain and offset).
-    Only 3x3 local maxima above a threshold survive: ~1500 windows of a 640x480 frame.
+    Only 3x3 local maxima above a per-level threshold survive: ~1000 windows of a
+    textured 640x480 frame (~400x fewer than all windows).
 1b. The "screen": a one-hidden-layer perceptron (16 ReLU units) on the normalised window,
-    2.3k multiply-adds per window, trained on discs against the windows 1a lets through;
-    it keeps ~99% of disc windows and ~1 in 10 of the rest.
+    2.3k multiply-adds per window, trained on discs against the windows 1a lets through.
+    Together ~2000x fewer windows than a full scan, ~200-300 per textured frame.
 
-Non-maximum suppression then merges the windows of one disc (neighbouring positions and
-levels) and stage 2 scores what is left: the condensed 1-NN on windows normalised to
-zero mean and unit norm, where a squared distance is ``2 - 2 a.b``, so the stage is one
-float32 matrix product with the prototypes. Why the screen: the windows 1a proposes are
-all dark blobs, and in the space of normalised 12x12 windows many of them (eyes, coins,
-punctuation, gaps in gravel) lie among the discs; Hart's rule then keeps thousands of
-prototypes, and a 1-NN over thousands of prototypes for every 1a window would take
-milliseconds. The screen removes 90% of those windows for a tenth of the cost, which
-leaves the 1-NN ~100 windows per frame and lets the condensed set stay small.
+Each survivor's disc centre and radius are measured in its window (`window_geometry`).
+Non-maximum suppression groups the windows of one disc (neighbouring positions and
+levels) in order of the screen score, and stage 2 judges each group's leader: the
+condensed 1-NN on windows normalised to zero mean and unit norm, where a squared
+distance is ``2 - 2 a.b``, so the stage is one float32 matrix product with ~360
+prototypes. A leader stage 2 rejects does not take its group down (the windows only it
+suppressed get their turn). The stage-2 score (distance to the nearest non-disc
+prototype minus distance to the nearest disc prototype) is the candidate's score.
+
+Why the screen: every window 1a proposes is a dark blob, and in the space of normalised
+12x12 windows many of them (eyes, coins, punctuation, gaps in gravel) lie among the
+discs. Hart's rule then keeps a large fraction of whatever it is given (~30% here, vs
+1.4% in the paper, whose negatives were random windows), and a 1-NN over thousands of
+prototypes for every 1a window would take milliseconds. The screen removes ~85% of those
+windows at a tenth of the cost, so stage 2 sees ~200 windows per frame and its condensed
+set can stay small. The thresholds of the screen and stage 2 are tuned together, after
+training, for disc recall on fresh frames of each condition (`app.core.training`).
 
 Scale: the window is fixed at 12x12 and the image is halved per level (``cv2.pyrDown``).
 Each level is trained for discs of 3.5..10 of its pixels across (`DIAMETER_RANGE`), so
@@ -86,8 +95,8 @@ class DiscClassifier:
     """Trained parameters of both stages.
 
     blob_thresholds: (LEVELS,) stage 1a, minimum dark-blob score of a local maximum at
-        each level (level 0, with ~2/3 of all windows and only small discs, can afford
-        a stricter one).
+        each level (level 0, with ~2/3 of all windows and only small, sharp discs, can
+        afford a stricter one).
     screen_w1 (144, H), screen_b1 (H,), screen_w2 (H,), screen_b2, screen_threshold:
         stage 1b, a one-hidden-layer perceptron on the normalised window x,
         ``w2 . relu(x W1 + b1) + b2 > screen_threshold``.
@@ -111,11 +120,7 @@ class DiscClassifier:
     stats: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        w1 = np.array(self.screen_w1, dtype=np.float32)
-        if w1.ndim == 2 and w1.shape[0] == _DIM:
-            # Inputs have zero mean, so a constant per column is irrelevant; removing it
-            # lets `_screen_raw` skip the mean subtraction.
-            w1 -= w1.mean(axis=0, keepdims=True)
+        w1 = np.ascontiguousarray(self.screen_w1, dtype=np.float32)
         b1 = np.ascontiguousarray(self.screen_b1, dtype=np.float32).reshape(-1)
         w2 = np.ascontiguousarray(self.screen_w2, dtype=np.float32).reshape(-1)
         protos = np.ascontiguousarray(self.prototypes, dtype=np.float32)
@@ -151,7 +156,9 @@ class DiscClassifier:
             a.setflags(write=False)
             object.__setattr__(self, name, a)
         object.__setattr__(self, "stats", dict(self.stats))
-        # Split by class once: stage 2 needs the nearest of each class.
+        # Column sums of W1, for `_screen_raw`; and prototypes split by class once
+        # (stage 2 needs the nearest of each class).
+        object.__setattr__(self, "_w1_sum", w1.sum(axis=0))
         object.__setattr__(self, "_pos", np.ascontiguousarray(protos[labels == 1].T))
         object.__setattr__(self, "_neg", np.ascontiguousarray(protos[labels == 0].T))
 
@@ -280,10 +287,11 @@ def pad_level(level: np.ndarray) -> np.ndarray:
 
 def blob_scores(padded: np.ndarray) -> np.ndarray:
     """Stage-1a score of every 12x12 window lying wholly inside `padded` (a level with
-    a replicated border, see `pad_level`, or the atlas of levels).
+    a replicated border, see `pad_level`).
 
     Returns float32 of shape (h - 11, w - 11): entry (y, x) scores the window
-    ``padded[y : y + 12, x : x + 12]``.
+    ``padded[y : y + 12, x : x + 12]``. Unitless, about -1..1; a clean disc of the
+    level's size range scores 0.4-0.8.
     """
     # 12x12 max/min over the window (anchor 6: rows y-6..y+5 -> centre y-0.5) and the
     # closing (erosion anchored at 5 so the composite element is centred).
@@ -310,6 +318,23 @@ def local_maxima(score: np.ndarray, threshold: float) -> tuple[np.ndarray, np.nd
     cv2.max(dil, float(threshold) + 1e-6, dst=dil)
     mask = cv2.compare(score, dil, cv2.CMP_GE)
     return _nonzero(mask)
+
+
+def stage1_scores(level: np.ndarray) -> np.ndarray:
+    """Dense stage-1a score of every window of one pyramid level (uint8, H x W):
+    float32 (H + 1, W + 1), entry (y, x) for the window centred at level position
+    (x - 0.5, y - 0.5)."""
+    return blob_scores(pad_level(np.ascontiguousarray(level, dtype=np.uint8)))
+
+
+def stage1_mask(level: np.ndarray, threshold: float) -> np.ndarray:
+    """bool (H + 1, W + 1): the windows of one level stage 1a passes (3x3 local maxima of
+    `stage1_scores` above `threshold`), indexed as `stage1_scores`."""
+    score = stage1_scores(level)
+    mask = np.zeros(score.shape, bool)
+    ys, xs = local_maxima(score, threshold)
+    mask[ys, xs] = True
+    return mask
 
 
 def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -360,13 +385,15 @@ def screen_scores(normalised: np.ndarray, classifier: DiscClassifier) -> np.ndar
 
 
 def _screen_raw(raw: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
-    """`screen_scores` of raw uint8 windows without normalising them first: the columns
-    of W1 sum to zero (the mean of x is zero anyway), so ``x W1 = (w W1) / |w - mean|``."""
+    """`screen_scores` of raw uint8 windows without normalising them first:
+    ``x W1 = (w W1 - mean(w) 1 W1) / |w - mean(w)|``, one product and two cheap
+    corrections instead of a pass over every pixel of every window."""
     w = raw.reshape(-1, _DIM).astype(np.float32)
-    total = w.sum(axis=1)
-    sq = np.einsum("ij,ij->i", w, w) - total * total / np.float32(_DIM)
+    mean = w.sum(axis=1) / np.float32(_DIM)
+    sq = np.einsum("ij,ij->i", w, w) - np.float32(_DIM) * mean * mean
     inv = 1.0 / np.maximum(np.sqrt(np.maximum(sq, 0.0)), np.float32(_NORM_EPS))
     hidden = w @ classifier.screen_w1
+    hidden -= mean[:, None] * classifier._w1_sum[None, :]  # type: ignore[attr-defined]
     hidden *= inv[:, None]
     hidden += classifier.screen_b1
     np.maximum(hidden, 0.0, out=hidden)
@@ -631,8 +658,8 @@ def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.nd
     rows[:, 2] = radius * scale
     # A centre off the image (a window at a coarse level's edge) cannot be a disc the
     # later stages could use; treat it as rejected.
-    h, w = s1.padded_levels[0].shape[0] - 2 * _HALF, s1.padded_levels[0].shape[1] - 2 * _HALF
-    inside = (rows[:, 0] >= -0.5) & (rows[:, 0] <= w - 0.5) & (rows[:, 1] >= -0.5) & (rows[:, 1] <= h - 0.5)
+    height, width = s1.padded_levels[0].shape[0] - 2 * _HALF, s1.padded_levels[0].shape[1] - 2 * _HALF
+    inside = (rows[:, 0] >= -0.5) & (rows[:, 0] <= width - 0.5) & (rows[:, 1] >= -0.5) & (rows[:, 1] <= height - 0.5)
     # Group the windows of each disc (neighbouring positions and levels) in order of
     # their screen score and let stage 2 judge each group's leader. A rejected leader
     # does not take its group down: the windows only it suppressed get their turn.
@@ -830,7 +857,7 @@ def train_classifier(
     negatives: np.ndarray,
     rng: np.random.Generator,
     *,
-    blob_thresholds: float | Sequence[float] = (0.25, 0.18, 0.18, 0.18),
+    blob_thresholds: float | Sequence[float] = (0.25, 0.16, 0.16, 0.16),
     screen_fn_rate: float = 0.01,
     nn_fn_rate: float = 0.003,
     hidden: int = 16,
@@ -891,7 +918,6 @@ def train_classifier(
     sp = np.sort(rng.choice(pos.shape[0], min(pos.shape[0], max_screen_examples // 2), replace=False))
     sn = np.sort(rng.choice(neg.shape[0], min(neg.shape[0], max_screen_examples // 2), replace=False))
     w1, b1, w2, b2 = fit_screen(pos[sp], neg[sn], rng, hidden=hidden)
-    w1 = w1 - w1.mean(axis=0, keepdims=True)  # zero-sum columns (see _screen_raw)
 
     def screen(x: np.ndarray) -> np.ndarray:
         return np.maximum(x @ w1 + b1, 0.0) @ w2 + np.float32(b2)

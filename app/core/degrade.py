@@ -327,6 +327,8 @@ def defocus_kernel(radius_px: float) -> np.ndarray:
     coords = (np.arange(size, dtype=np.float64)[:, None] - half + sub[None, :]).ravel()
     inside = (coords[:, None] ** 2 + coords[None, :] ** 2) <= r * r  # (size*ss)^2
     kernel = inside.reshape(size, ss, size, ss).mean(axis=(1, 3))
+    if kernel.sum() == 0.0:  # the blur circle missed every sub-sample: no blur
+        kernel[half, half] = 1.0
     kernel /= kernel.sum()
     return kernel.astype(np.float32)
 
