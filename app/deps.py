@@ -9,6 +9,7 @@ from fastapi import Depends, Request
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session
 
+from app.services.detection import DetectorCache
 from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.settings import Settings
@@ -31,6 +32,10 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+def get_detectors(request: Request) -> DetectorCache:
+    return request.app.state.detectors
+
+
 def get_jobs(request: Request) -> JobRunner:
     return request.app.state.jobs
 
@@ -39,4 +44,5 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
 SessionDep = Annotated[Session, Depends(get_session)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+DetectorsDep = Annotated[DetectorCache, Depends(get_detectors)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]

@@ -10,15 +10,20 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
+import anyio
 from fastapi import FastAPI, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from app import __version__
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.routers import environments, health, jobs, markers
+from app.routers import classifiers as classifiers_router
+from app.routers import detect, environments, health, jobs, markers, track
+from app.services import classifiers
+from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
 from app.services.jobs import JobRunner
+from app.services.tracking import TrackingContexts
 from app.services.metrics import Metrics
 from app.settings import Settings
 
@@ -32,12 +37,18 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
     sessions = make_sessionmaker(engine)
+    with sessions() as session:
+        classifiers.install_default(session)
     runner = JobRunner(settings.resolved_database_url, settings.sqlite_busy_timeout_ms, settings.data_dir,
                        sessions, settings.max_concurrent_jobs)
     runner.start()
     app.state.engine = engine
     app.state.sessionmaker = sessions
     app.state.jobs = runner
+    app.state.detectors = DetectorCache()
+    app.state.tracking = TrackingContexts(app.state.detectors)
+    # Frames of all clients share a few worker threads (OpenCV releases the GIL).
+    app.state.track_limiter = anyio.CapacityLimiter(settings.track_threads)
     try:
         yield
     finally:
@@ -81,7 +92,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(environments.router)
     app.include_router(markers.router)
+    app.include_router(detect.router)
+    app.include_router(classifiers_router.router)
     app.include_router(jobs.router)
+    app.include_router(track.router)
     return app
 
 

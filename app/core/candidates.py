@@ -765,7 +765,7 @@ def fit_screen(pos: np.ndarray, neg: np.ndarray, rng: np.random.Generator, hidde
 
 
 def condense(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, chunk: int = 2048,
-             max_passes: int = 50) -> tuple[np.ndarray, int]:
+             max_passes: int = 50, initial: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Hart's condensed nearest neighbour (1968): indices of a subset ("store") that
     classifies every training example correctly by 1-NN. Examples are visited in a
     random order; one misclassified by the current store joins it; passes repeat until
@@ -774,13 +774,17 @@ def condense(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, chunk: int 
     Exact sequential semantics, but fast: each chunk's similarities to the store are one
     matrix product, and a prototype added inside the chunk updates the rest of the chunk
     with one vector product. Rows of x are unit vectors, so nearest = largest dot.
+
+    ``initial``: indices that start the store (e.g. an existing classifier's prototypes
+    when it is adapted to new examples: Hart's rule then adds only what they get wrong).
     """
     x = np.ascontiguousarray(x, dtype=np.float32)
     y = np.asarray(y).astype(np.int8)
     order = rng.permutation(x.shape[0])
-    store: list[int] = [int(order[0])]
+    start_with = [int(order[0])] if initial is None or len(initial) == 0 else [int(i) for i in initial]
+    store: list[int] = list(dict.fromkeys(start_with))
     in_store = np.zeros(x.shape[0], bool)
-    in_store[order[0]] = True
+    in_store[store] = True
     passes = 0
     while passes < max_passes:
         passes += 1

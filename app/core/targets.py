@@ -1,0 +1,1072 @@
+"""Targets from disc candidates: grouping, verification, subpixel disc centres and
+identification (Claus & Fitzgibbon, WACV 2005, section 4, after the learned disc stage).
+
+Pipeline of `assemble_targets`:
+
+1. Grouping (`group_candidates`). The paper relies on the Delaunay triangulation of the
+   candidates holding each true target as two adjacent triangles. Our own code cells
+   (and clutter next to a card) are candidates too and break that, so 4-tuples are
+   proposed from Delaunay *neighbourhoods* instead: every candidate is an apex, two of
+   its neighbours or neighbours-of-neighbours are the adjacent discs, and the fourth
+   disc is looked up near the parallelogram prediction. Cheap vectorised geometry
+   (convex, similar radii, disc size vs quadrilateral size, angles) prunes them.
+2. Verification (`_measure`). The homography from the card layout to the four points
+   is used to sample a fixed set of card points (discs, the white card around and
+   between them, the white gap around the code, the code cells) from a pyramid level
+   matched to the card's size (no aliasing), all proposals at once with one
+   `cv2.remap`. Thresholds on the normalised measurements were set on simulator data
+   (bench/bench_targets.py prints the distributions).
+3. Subpixel centres (`refine_centres`): background-corrected intensity-weighted
+   centroid in a window that is the image of a circle around the disc (through the
+   homography of the four discs), minus the perspective bias of the ellipse centroid
+   (exact, from the image conic of the disc), iterated.
+4. Identification (`identify`, `decode_cells`): the code is read through the refined
+   homography, normalised by the card's own black (discs) and white levels and matched
+   against every code of the family in all four rotations; ambiguous reads are refused.
+
+Coordinates: full-resolution pixels, centre of the top-left pixel at (0, 0). Disc order
+of the output follows DESIGN.md: 0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left
+as printed, the card upright as its code defines.
+
+Pure numpy/OpenCV/SciPy; no I/O.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, DISC_CENTRES, DISC_RADIUS, get_family
+
+# --------------------------------------------------------------------------------------
+# Public types
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: ndarray fields make a generated __eq__ useless
+class DetectedTarget:
+    """One identified target in an image.
+
+    discs: (4, 2) subpixel disc centres (projections of the printed disc centres), in
+    DESIGN.md order; score: confidence 0..1; disc_radii: (4,) imaged radii in pixels
+    (sqrt of the disc's dark area / pi).
+    """
+
+    id: int
+    discs: np.ndarray
+    score: float
+    disc_radii: np.ndarray = field(default_factory=lambda: np.zeros(4))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": int(self.id),
+            "discs": [[float(u), float(v)] for u, v in np.asarray(self.discs, np.float64)],
+            "score": float(self.score),
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Tunables (set on simulator data, see bench/bench_targets.py)
+# --------------------------------------------------------------------------------------
+
+#: Largest ratio of two candidate radii joined by an edge / within one quadrilateral.
+#: The candidate stage's radius is coarse (~15%, worse under blur) and a tilted card
+#: shows its near discs larger than its far ones.
+RADIUS_RATIO_MAX = 2.0
+#: Edge length between two discs of a card over their mean candidate radius: 4.8 for a
+#: fronto-parallel card (side 0.6 / radius 0.125), 6.8 for the diagonal; foreshortening
+#: shortens a side by up to cos(70 deg) while the radius (a mean of the ellipse axes)
+#: shrinks less, and the radius may be off by ~1.5x.
+EDGE_OVER_RADIUS = (2.2, 10.0)
+#: sqrt(quadrilateral area) / mean candidate radius: 4.8 whatever the affine view (area
+#: ratios are affine invariant), within the radius error and perspective.
+SQRT_AREA_OVER_RADIUS = (3.3, 7.0)
+#: A candidate more than RADIUS_RATIO_MAX times smaller than a neighbour within this many
+#: of the neighbour's radii lies on the neighbour's card (the farthest code cell is 3.4
+#: disc radii from the nearest disc).
+DOMINANCE_REACH = 4.0
+#: Code cells are found as candidates of their own only on cards whose discs are at
+#: least this big (pixels); those cards get a second triangulation without them.
+BIG_DISC_RADIUS = 4.5
+#: sqrt(|cross product|) of the two sides at an apex over the apex's radius: the same
+#: 4.8 nominal, looser (one radius, and perspective skews the parallelogram).
+APEX_AREA_OVER_RADIUS = (2.2, 9.0)
+#: Interior angles of the disc quadrilateral (degrees): a square tilted by 70 degrees
+#: about its diagonal shows 38 and 142.
+ANGLE_RANGE_DEG = (22.0, 158.0)
+#: Shortest over longest side.
+SIDE_RATIO_MIN = 0.22
+
+#: Canonical sampling density: samples per card side the pyramid level is matched to.
+SAMPLES_PER_CARD = 40.0
+#: Photometric verification thresholds on values normalised to black (discs) = 0,
+#: white (card) = 1.
+MIN_CONTRAST_GREY = 6.0  # white - black in grey levels
+MAX_WHITE_SPREAD = 0.35  # P90 - P10 of the white samples between discs and in the gap,
+NOISE_SPREAD_GREY = 10.0  # or this many grey levels: sensor noise on a dim card (sigma ~4)
+MAX_DISC_LEVEL = 0.35  # mean of each disc's samples
+MAX_DISC_SPREAD = 0.30  # darkest vs lightest disc
+MAX_DISC_SAMPLE = 0.55  # lightest single disc sample, once the centres are refined
+WHITE_LOW_PERCENTILE = 10.0
+MIN_WHITE_LOW = 0.45  # that percentile of the white samples
+MIN_GAP_LEVEL = 0.55  # every gap sample between the code and the discs (worst of 12: 2nd lowest)
+MIN_EDGE_LEVEL = 0.5  # median of the card margin near the edge
+MIN_VALID_FRACTION = 0.9  # of the card's samples inside the image
+#: Code cells: a cell is read as black below 0.5, and must be at least this far from
+#: 0.5 to count as clearly read.
+CELL_MARGIN = 0.12
+
+#: Largest log(max / min) over a card's discs of (dark area radius / radius predicted by
+#: the homography): true cards stay below 0.1 (0.05 for 99.5%), a disc of an
+#: overlapping card or a half-hidden one shows 0.14 and more.
+MAX_RADIUS_SPREAD = 0.12
+#: Largest move of a disc centre in refinement, in predicted disc radii (2 px at least).
+MAX_REFINE_SHIFT = 0.6
+
+#: Subpixel refinement: window (in disc radii, card units) and white ring.
+REFINE_WINDOW = 1.1
+REFINE_TAPER = 0.1
+REFINE_RING = (1.15, 1.4)
+REFINE_ITERATIONS = 3
+REFINE_MAX_HALF = 16  # larger windows are measured on a pyramid level
+
+
+# --------------------------------------------------------------------------------------
+# Homographies (vectorised)
+# --------------------------------------------------------------------------------------
+
+# Layout disc centres -> unit square, so the closed-form square-to-quad mapping applies.
+_LAYOUT_TO_SQUARE = np.array(
+    [[1 / 0.6, 0.0, -0.2 / 0.6], [0.0, 1 / 0.6, -0.2 / 0.6], [0.0, 0.0, 1.0]], np.float64
+)
+assert np.allclose(DISC_CENTRES, [[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]])
+
+
+def homographies(quads: np.ndarray) -> np.ndarray:
+    """(P, 3, 3) homographies mapping the layout disc centres (card units) to `quads`
+    (P, 4, 2), all at once (Heckbert's closed-form square-to-quad mapping; a Python loop
+    over cv2.getPerspectiveTransform costs more than the rest of the grouping)."""
+    q = np.asarray(quads, np.float64).reshape(-1, 4, 2)
+    x0, x1, x2, x3 = (q[:, k, 0] for k in range(4))
+    y0, y1, y2, y3 = (q[:, k, 1] for k in range(4))
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    den = dx1 * dy2 - dx2 * dy1
+    den = np.where(np.abs(den) > 1e-12, den, 1e-12)
+    g = (dx3 * dy2 - dx2 * dy3) / den
+    h = (dx1 * dy3 - dx3 * dy1) / den
+    hs = np.empty((q.shape[0], 3, 3))
+    hs[:, 0, 0] = x1 - x0 + g * x1
+    hs[:, 0, 1] = x3 - x0 + h * x3
+    hs[:, 0, 2] = x0
+    hs[:, 1, 0] = y1 - y0 + g * y1
+    hs[:, 1, 1] = y3 - y0 + h * y3
+    hs[:, 1, 2] = y0
+    hs[:, 2, 0] = g
+    hs[:, 2, 1] = h
+    hs[:, 2, 2] = 1.0
+    return hs @ _LAYOUT_TO_SQUARE
+
+
+def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Map card points `pts` (M, 2) through every homography (P, 3, 3) -> (P, M, 2)."""
+    x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
+    w = x[..., 2:3]
+    w = np.where(np.abs(w) > 1e-12, w, 1e-12)
+    return x[..., :2] / w
+
+
+def _ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Centres (P, K, 2) of the image ellipses of card circles (`centres` (K, 2),
+    `radius`) under each homography: the image conic is H^-T C H^-1."""
+    hinv = np.linalg.inv(hs)  # (P, 3, 3)
+    k = centres.shape[0]
+    circles = np.zeros((k, 3, 3))
+    circles[:, 0, 0] = circles[:, 1, 1] = 1.0
+    circles[:, 0, 2] = circles[:, 2, 0] = -centres[:, 0]
+    circles[:, 1, 2] = circles[:, 2, 1] = -centres[:, 1]
+    circles[:, 2, 2] = (centres**2).sum(axis=1) - radius * radius
+    conics = np.einsum("pji,kjl,plm->pkim", hinv, circles, hinv)  # H^-T C H^-1
+    a = conics[..., :2, :2]
+    b = conics[..., :2, 2]
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    cx = -(a[..., 1, 1] * b[..., 0] - a[..., 0, 1] * b[..., 1]) / det
+    cy = -(-a[..., 1, 0] * b[..., 0] + a[..., 0, 0] * b[..., 1]) / det
+    return np.stack([cx, cy], axis=-1)
+
+
+# --------------------------------------------------------------------------------------
+# Grouping
+# --------------------------------------------------------------------------------------
+
+
+def _clean(candidates: np.ndarray) -> np.ndarray:
+    """Indices of usable candidates: finite, positive radius, one per half-pixel cell
+    (of duplicates the better score stays)."""
+    c = np.asarray(candidates, dtype=np.float64)
+    if c.ndim != 2 or c.shape[0] == 0 or c.shape[1] < 3:
+        return np.zeros(0, np.intp)
+    finite = np.isfinite(c[:, :3]).all(axis=1) & (c[:, 2] > 0) & (np.abs(c[:, :2]) < 1e6).all(axis=1)
+    if c.shape[1] >= 4:
+        finite &= np.isfinite(c[:, 3])
+    idx = np.flatnonzero(finite)
+    if idx.size < 2:
+        return idx
+    if c.shape[1] >= 4:
+        idx = idx[np.argsort(-c[idx, 3], kind="stable")]
+    cell = np.rint(c[idx, :2] * 2.0).astype(np.int64)
+    key = cell[:, 0] * 4_000_003 + cell[:, 1]
+    order = np.argsort(key, kind="stable")  # stable: the best score leads each cell
+    ks = key[order]
+    first = order[np.concatenate(([True], ks[1:] != ks[:-1]))]
+    return np.sort(idx[first])
+
+
+def _unique(keys: np.ndarray) -> np.ndarray:
+    """Sorted distinct values (np.unique is several times slower on numpy 2.4)."""
+    s = np.sort(keys)
+    return s[np.concatenate(([True], s[1:] != s[:-1]))] if s.size else s
+
+
+def _ragged_pairs(src: np.ndarray, n: int, ordered: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (e1, e2), e1 != e2, of edges sharing their source, for edges sorted by
+    `src`: all ordered pairs, or only e1 < e2."""
+    counts = np.bincount(src, minlength=n)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    if ordered:
+        per_edge = counts[src]
+        base = starts[src]
+    else:
+        # edge e pairs with the edges after it in its group
+        per_edge = starts[src] + counts[src] - np.arange(src.size) - 1
+        base = np.arange(src.size) + 1
+    total = int(per_edge.sum())
+    if total == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    e1 = np.repeat(np.arange(src.size), per_edge)
+    offs = np.arange(total) - np.repeat(np.cumsum(per_edge) - per_edge, per_edge)
+    e2 = base[e1] + offs
+    if not ordered:
+        return e1, e2
+    keep = e1 != e2
+    return e1[keep], e2[keep]
+
+
+def _neighbourhood(pts: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pairs (a, b) of Delaunay neighbours and neighbours-of-neighbours among the points
+    ``pts[ids]``, as indices into `pts`, each unordered pair at least once (in either
+    order; duplicates and a == b possible); None when the points cannot be triangulated
+    (fewer than 3, all collinear)."""
+    if ids.size < 3:
+        return None
+    try:
+        tri = Delaunay(pts[ids])
+    except (QhullError, ValueError):
+        return None
+    indptr, nbrs = tri.vertex_neighbor_vertices
+    src = np.repeat(np.arange(ids.size), np.diff(indptr))  # sorted: CSR order
+    e1, e2 = _ragged_pairs(src, ids.size, ordered=False)  # two neighbours of one middle
+    a = np.concatenate([src, nbrs[e1]])
+    b = np.concatenate([nbrs, nbrs[e2]])
+    return ids[a], ids[b]
+
+
+def _quad_geometry_ok(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Cheap geometric checks of disc quadrilaterals p (P, 4, 2) with candidate radii
+    r (P, 4), vertices in the layout's orientation: bool (P,). Squared quantities
+    (no square roots or arc cosines) and per-vertex columns (numpy reductions over a
+    short last axis are slow)."""
+    if p.shape[0] == 0:
+        return np.zeros(0, bool)
+    x = [p[:, k, 0] for k in range(4)]
+    y = [p[:, k, 1] for k in range(4)]
+    rr = [r[:, k] for k in range(4)]
+    area = 0.5 * sum(x[k] * y[(k + 1) % 4] - x[(k + 1) % 4] * y[k] for k in range(4))
+    rm = 0.25 * (rr[0] + rr[1] + rr[2] + rr[3])
+    # sqrt(area) / radius is the same for every affine view of a card
+    ok = (area >= (SQRT_AREA_OVER_RADIUS[0] ** 2) * rm * rm) & (area <= (SQRT_AREA_OVER_RADIUS[1] ** 2) * rm * rm)
+    rmax = np.maximum(np.maximum(rr[0], rr[1]), np.maximum(rr[2], rr[3]))
+    rmin = np.minimum(np.minimum(rr[0], rr[1]), np.minimum(rr[2], rr[3]))
+    ok &= rmax <= RADIUS_RATIO_MAX * rmin
+    ex = [x[(k + 1) % 4] - x[k] for k in range(4)]  # e[k] = p[k+1] - p[k]
+    ey = [y[(k + 1) % 4] - y[k] for k in range(4)]
+    s2 = [ex[k] * ex[k] + ey[k] * ey[k] for k in range(4)]
+    smax = np.maximum(np.maximum(s2[0], s2[1]), np.maximum(s2[2], s2[3]))
+    smin = np.minimum(np.minimum(s2[0], s2[1]), np.minimum(s2[2], s2[3]))
+    ok &= smin >= SIDE_RATIO_MIN**2 * smax
+    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
+    for k in range(4):
+        m = (k + 1) % 4
+        cross = ex[k] * ey[m] - ey[k] * ex[m]
+        dot = ex[k] * ex[m] + ey[k] * ey[m]
+        # convex and turning like the layout; interior angle at vertex k+1 in range
+        ok &= (cross > 0) & (dot * dot < c2 * s2[k] * s2[m])
+    return ok
+
+
+def _edge_keys(a: np.ndarray, b: np.ndarray, length: np.ndarray, rad: np.ndarray, n: int) -> np.ndarray:
+    """Keys a * n + b, both directions, of the pairs that could be two discs of one
+    card: not a loop, similar radii, length consistent with them."""
+    ra, rb = rad[a], rad[b]
+    rsum = ra + rb
+    keep = (a != b) & (ra <= RADIUS_RATIO_MAX * rb) & (rb <= RADIUS_RATIO_MAX * ra)
+    keep &= (length >= 0.5 * EDGE_OVER_RADIUS[0] * rsum) & (length <= 0.5 * EDGE_OVER_RADIUS[1] * rsum)
+    a, b = a[keep], b[keep]
+    return np.concatenate([a * n + b, b * n + a])
+
+
+def group_candidates(candidates: np.ndarray) -> np.ndarray:
+    """Proposed disc quadrilaterals: (P, 4) indices into `candidates` (N, 4) rows
+    ``[u, v, radius, score]``, each in the layout's orientation (clockwise on screen,
+    like discs 0-1-2-3 of a card seen from the front), starting anywhere.
+
+    The paper takes a true target to be two adjacent triangles of the Delaunay
+    triangulation of the candidates. Our own code cells (and clutter next to a card)
+    are candidates too and cut Delaunay edges between discs, so the graph used here
+    joins each candidate to its Delaunay neighbours *and their neighbours*, keeping only
+    edges between candidates of similar radius at a distance consistent with that
+    radius. A proposal is a 4-cycle i-j-k-l of that graph turning like the layout,
+    found once (from its smallest index), with a plausible triangle at the apex; every
+    proposal then passes the cheap geometric checks (`_quad_geometry_ok`). Degenerate
+    input (fewer than 4 usable candidates, all collinear, NaN) gives (0, 4).
+    """
+    empty = np.zeros((0, 4), np.intp)
+    idx = _clean(candidates)
+    if idx.size < 4:
+        return empty
+    c = np.asarray(candidates, np.float64)[idx]
+    pts, rad = c[:, :2], c[:, 2]
+    n = idx.size
+    pairs = _neighbourhood(pts, np.arange(n))
+    if pairs is None:
+        return empty
+    a, b = pairs
+    px, py = pts[:, 0].copy(), pts[:, 1].copy()  # contiguous: faster gathers
+    length = np.hypot(px[b] - px[a], py[b] - py[a])
+    keys = [_edge_keys(a, b, length, rad, n)]
+    # A big card holds many small candidates (code cells, specks on the paper) that cut
+    # even two-hop paths between its discs: triangulate the big candidates again
+    # without those that a much larger neighbour dominates (they lie on its card).
+    rb = rad[b]
+    dom = (rb > RADIUS_RATIO_MAX * rad[a]) & (length < DOMINANCE_REACH * rb)
+    dom_b = (rad[a] > RADIUS_RATIO_MAX * rb) & (length < DOMINANCE_REACH * rad[a])
+    if dom.any() or dom_b.any():
+        big = rad >= BIG_DISC_RADIUS
+        big[a[dom]] = False
+        big[b[dom_b]] = False
+        big = np.flatnonzero(big)
+        extra = _neighbourhood(pts, big) if big.size >= 4 else None
+        if extra is not None:
+            a, b = extra
+            keys.append(_edge_keys(a, b, np.hypot(px[b] - px[a], py[b] - py[a]), rad, n))
+    key = _unique(np.concatenate(keys))  # sorted by source, then destination
+    if key.size < 4:
+        return empty
+    src, dst = key // n, key % n
+    dx, dy = px[dst] - px[src], py[dst] - py[src]
+    len2 = dx * dx + dy * dy
+    deg = np.bincount(src, minlength=n)
+    first = np.concatenate([[0], np.cumsum(deg)[:-1]])
+    # Apex triples (i, j, l): two edges out of i, both to larger indices (each cycle is
+    # then found once, from its smallest vertex), turning like the layout.
+    ups = np.flatnonzero(dst > src)
+    e1, e2 = _ragged_pairs(src[ups], n)
+    e1, e2 = ups[e1], ups[e2]
+    cross = dx[e1] * dy[e2] - dy[e1] * dx[e2]
+    dot = dx[e1] * dx[e2] + dy[e1] * dy[e2]
+    l1, l2 = len2[e1], len2[e2]
+    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
+    r2 = rad[src[e1]] ** 2
+    # angle at the apex; side ratio; parallelogram area over radius^2 ((0.6 / 0.125)^2
+    # for any affine view of a card)
+    ok = (cross > 0) & (dot * dot < c2 * l1 * l2)
+    ok &= (np.minimum(l1, l2) >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
+    ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
+    e1, e2 = e1[ok], e2[ok]
+    if e1.size == 0:
+        return empty
+    i, j, l_ = src[e1], dst[e1], dst[e2]
+    # Fourth vertex k: a neighbour of j (beyond i) that is also a neighbour of l.
+    per = deg[j]
+    t = np.repeat(np.arange(i.size), per)
+    offs = np.arange(t.size) - np.repeat(np.cumsum(per) - per, per)
+    k = dst[first[j[t]] + offs]
+    i, j, l_ = i[t], j[t], l_[t]
+    ok = (k > i) & (k != l_)
+    i, j, k, l_ = i[ok], j[ok], k[ok], l_[ok]
+    want = l_ * n + k
+    pos = np.minimum(np.searchsorted(key, want), key.size - 1)
+    ok = key[pos] == want
+    quads = np.stack([i[ok], j[ok], k[ok], l_[ok]], axis=1)
+    if quads.shape[0] == 0:
+        return empty
+    quads = quads[_quad_geometry_ok(pts[quads], rad[quads])]
+    return idx[quads]
+
+
+# --------------------------------------------------------------------------------------
+# Canonical sample points (card units)
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _SamplePlan:
+    """Card points sampled to verify and read a target, and which group each is in."""
+
+    points: np.ndarray  # (M, 2) card units
+    disc: np.ndarray  # (4, D) indices: samples inside each disc
+    ring: np.ndarray  # white ring around each disc
+    between: np.ndarray  # white between neighbouring discs
+    gap: np.ndarray  # white gap between code and discs
+    edge: np.ndarray  # card margin near its edge
+    white: np.ndarray  # ring, between and gap: the card's white level
+    cells: np.ndarray  # (n*n, S) samples in each code cell, row-major
+    n: int
+    core: np.ndarray  # discs and code: these must all lie in the image
+
+
+@functools.cache
+def _plan(n: int) -> _SamplePlan:
+    pts: list[np.ndarray] = []
+
+    def add(p: np.ndarray) -> np.ndarray:
+        start = sum(len(a) for a in pts)
+        pts.append(np.asarray(p, np.float64).reshape(-1, 2))
+        return np.arange(start, start + len(pts[-1]))
+
+    ang6 = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    ang12 = np.linspace(0, 2 * np.pi, 12, endpoint=False) + np.pi / 12
+    disc_in = np.concatenate([[[0.0, 0.0]], 0.5 * DISC_RADIUS * np.stack([np.cos(ang6), np.sin(ang6)], 1)])
+    ring = 1.3 * DISC_RADIUS * np.stack([np.cos(ang12), np.sin(ang12)], 1)
+    disc = np.stack([add(c + disc_in) for c in DISC_CENTRES])
+    ring_ = np.concatenate([add(c + ring) for c in DISC_CENTRES])
+    t = np.array([0.4, 0.5, 0.6])
+    lo, hi = DISC_CENTRES[0, 0], DISC_CENTRES[2, 0]
+    between = np.concatenate([add(np.stack([a, b], 1)) for a, b in  # between neighbouring discs
+                              ((t, np.full(3, lo)), (np.full(3, hi), t), (t, np.full(3, hi)), (np.full(3, lo), t))])
+    g = 0.5 * (lo + CODE_ORIGIN)  # middle of the gap between disc line and code
+    g2 = 1.0 - g
+    gap = np.concatenate([add(np.stack([a, b], 1)) for a, b in
+                          ((t, np.full(3, g)), (np.full(3, g2), t), (t, np.full(3, g2)), (np.full(3, g), t))])
+    # Card margin outside the discs, 0.05 from the card edge: white on a true card, but
+    # it meets the background (blur, occlusion, image border), so it is judged loosely.
+    e0, e1 = 0.05, 0.95
+    te = np.array([0.35, 0.5, 0.65])
+    edge = np.concatenate([add(np.stack([a, b], 1)) for a, b in
+                           ((te, np.full(3, e0)), (np.full(3, e1), te), (te, np.full(3, e1)), (np.full(3, e0), te))]
+                          + [add(np.array([[0.06, 0.06], [0.94, 0.06], [0.94, 0.94], [0.06, 0.94]]))])
+    step = CODE_SIZE / n
+    sub = 0.22 * step * np.array([[0, 0], [-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64)
+    cells = []
+    for r in range(n):
+        for c in range(n):
+            centre = np.array([CODE_ORIGIN + (c + 0.5) * step, CODE_ORIGIN + (r + 0.5) * step])
+            cells.append(add(centre + sub))
+    cells_ = np.stack(cells)
+    plan = _SamplePlan(points=np.concatenate(pts), disc=disc, ring=ring_, between=between, gap=gap, edge=edge,
+                       white=np.concatenate([ring_, between, gap]), cells=cells_, n=n,
+                       core=np.concatenate([disc.ravel(), cells_.ravel()]))
+    return plan
+
+
+@functools.cache
+def _rotation_perms(n: int) -> np.ndarray:
+    """perm[s] (4, n*n): the cell read at row-major position p, when the quadrilateral's
+    vertex m is the card's disc (m + s) % 4, is printed cell perm[s][p].
+
+    Shifting the vertex order by one is the card turned by 90 degrees about its centre:
+    layout point (x, y) -> (1 - y, x) takes disc m to disc m + 1.
+    """
+    step = CODE_SIZE / n
+    rc = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2)
+    xy = np.stack([CODE_ORIGIN + (rc[:, 1] + 0.5) * step, CODE_ORIGIN + (rc[:, 0] + 0.5) * step], 1)
+    perms = []
+    for s in range(4):
+        p = xy.copy()
+        for _ in range(s):
+            p = np.stack([1.0 - p[:, 1], p[:, 0]], 1)
+        col = np.rint((p[:, 0] - CODE_ORIGIN) / step - 0.5).astype(int)
+        row = np.rint((p[:, 1] - CODE_ORIGIN) / step - 0.5).astype(int)
+        perms.append(row * n + col)
+    return np.array(perms)
+
+
+@functools.cache
+def _templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T, n*n) float32 templates (black = 0, white = 1, as the normalised image reads),
+    and the id and vertex shift of each: every code in every rotation."""
+    fam = get_family(family)
+    flat = fam.codes.reshape(len(fam), -1)
+    perms = _rotation_perms(fam.cells)
+    tmpl = np.concatenate([1.0 - flat[:, perms[s]] for s in range(4)]).astype(np.float32)
+    ids = np.tile(np.arange(len(fam)), 4)
+    shifts = np.repeat(np.arange(4), len(fam))
+    return tmpl, ids, shifts
+
+
+# --------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------
+
+
+class _Pyramid:
+    """Lazily built cv2.pyrDown levels of a uint8 image (level L pixel i is centred on
+    full-resolution pixel i * 2**L)."""
+
+    def __init__(self, gray: np.ndarray, levels: int = 4) -> None:
+        self.levels: list[np.ndarray] = [gray]
+        self.max_level = levels - 1
+
+    def get(self, level: int) -> np.ndarray:
+        while len(self.levels) <= level:
+            prev = self.levels[-1]
+            if min(prev.shape) < 4:
+                break
+            self.levels.append(cv2.pyrDown(prev))
+        return self.levels[min(level, len(self.levels) - 1)]
+
+
+def _sample(pyr: _Pyramid, hs: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples (P, M) float32 of card points `pts` through homographies `hs`,
+    each quadrilateral from the pyramid level whose pixel matches the sample spacing
+    (so a big card is not aliased), and a mask (P, M) of samples inside the image."""
+    xy = _apply(hs, pts)  # (P, M, 2) full-resolution pixels
+    p = hs.shape[0]
+    out = np.zeros((p, pts.shape[0]), np.float32)
+    inside = np.zeros((p, pts.shape[0]), bool)
+    if p == 0:
+        return out, inside
+    gray = pyr.levels[0]
+    h, w = gray.shape
+    # card side in pixels: sqrt(|det|) of the local linear map at the card centre
+    jac = _jacobians(hs, np.array([[0.5, 0.5]]))[:, 0]
+    side = np.sqrt(np.abs(jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]))
+    spacing = side / SAMPLES_PER_CARD
+    level = np.clip(np.floor(np.log2(np.maximum(spacing, 1.0))), 0, pyr.max_level).astype(int)
+    finite = np.isfinite(xy).all(axis=-1)
+    inside = finite & (xy[..., 0] >= -0.5) & (xy[..., 0] <= w - 0.5) & (xy[..., 1] >= -0.5) & (xy[..., 1] <= h - 0.5)
+    xy = np.where(finite[..., None], xy, -10.0)
+    for lv in np.unique(level):
+        rows = np.flatnonzero(level == lv)
+        img = pyr.get(int(lv))
+        scale = 2.0**lv
+        m = (xy[rows] / scale).astype(np.float32)
+        vals = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[rows] = vals
+    return out, inside
+
+
+# --------------------------------------------------------------------------------------
+# Verification measurements
+# --------------------------------------------------------------------------------------
+
+# Quick check, on every proposal: the 4 disc centres, then 12 card points that are white
+# on every card (between neighbouring discs, in the gap beside the code, and in the card
+# corners outside the discs).
+_QUICK_POINTS = np.concatenate([
+    DISC_CENTRES,
+    [[0.5, 0.2], [0.8, 0.5], [0.5, 0.8], [0.2, 0.5]],
+    [[0.5, 0.275], [0.725, 0.5], [0.5, 0.725], [0.275, 0.5]],
+    DISC_CENTRES + 1.3 * DISC_RADIUS * np.sqrt(0.5) * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]),
+])
+#: Quick check: every disc centre below this, and all but one of the white points above
+#: QUICK_WHITE (values normalised so the mean disc centre is 0 and the median white 1).
+QUICK_DISC = 0.4
+QUICK_WHITE = 0.5
+
+
+def _quick_check(pyr: _Pyramid, hs: np.ndarray) -> np.ndarray:
+    """bool (P,): could this be a card at all? 16 samples per proposal."""
+    vals, inside = _sample(pyr, hs, _QUICK_POINTS)
+    disc = vals[:, :4]
+    black = disc.mean(axis=1)
+    white = np.median(vals[:, 4:], axis=1)
+    c = white - black
+    ok = (c >= MIN_CONTRAST_GREY) & inside[:, :4].all(axis=1)
+    cn = np.maximum(c, 1e-3)[:, None]
+    ok &= ((disc - black[:, None]) / cn).max(axis=1) <= QUICK_DISC
+    whites = np.where(inside[:, 4:], (vals[:, 4:] - black[:, None]) / cn, 1.0)
+    ok &= np.sort(whites, axis=1)[:, 1] >= QUICK_WHITE
+    return ok
+
+
+
+@dataclass(frozen=True, eq=False)
+class _Measures:
+    """Photometric measurements of P card hypotheses; levels normalised so that the
+    discs are 0 and the card's white 1."""
+
+    black: np.ndarray  # (P,) grey level of the discs
+    white: np.ndarray  # (P,) grey level of the card
+    contrast: np.ndarray  # (P,) white - black, grey levels
+    uniformity: np.ndarray  # (P,) spread (P90 - P10) of the white between discs and in the gap
+    disc_level: np.ndarray  # (P,) mean of the lightest disc
+    disc_spread: np.ndarray  # (P,) lightest - darkest disc mean
+    disc_max: np.ndarray  # (P,) lightest single sample inside any disc (half-hidden discs)
+    white_low: np.ndarray  # (P,) low percentile of all white samples
+    gap_low: np.ndarray  # (P,) 2nd lowest gap sample
+    edge_level: np.ndarray  # (P,) median of the card margin near its edge
+    valid: np.ndarray  # (P,) fraction of samples inside the image (0 if discs or code are not)
+    cells: np.ndarray  # (P, n*n) code cell means
+    cell_lo: np.ndarray  # (P, n*n) darkest sub-sample of each cell
+    cell_hi: np.ndarray  # (P, n*n) lightest sub-sample of each cell
+
+    def passed(self) -> np.ndarray:
+        return (
+            (self.contrast >= MIN_CONTRAST_GREY)
+            & (self.uniformity <= np.maximum(MAX_WHITE_SPREAD, NOISE_SPREAD_GREY / np.maximum(self.contrast, 1e-3)))
+            & (self.disc_level <= MAX_DISC_LEVEL)
+            & (self.disc_spread <= MAX_DISC_SPREAD)
+            & (self.white_low >= MIN_WHITE_LOW)
+            & (self.gap_low >= MIN_GAP_LEVEL)
+            & (self.edge_level >= MIN_EDGE_LEVEL)
+            & (self.valid >= MIN_VALID_FRACTION)
+        )
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if not k.startswith("cell")}
+
+
+def _quantile_sorted(v: np.ndarray, q: float) -> np.ndarray:
+    """Quantile q of each row of the row-sorted array v (linear interpolation)."""
+    pos = q * (v.shape[1] - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, v.shape[1] - 1)
+    return v[:, lo] + (pos - lo) * (v[:, hi] - v[:, lo])
+
+
+def _measure(pyr: _Pyramid, hs: np.ndarray, n: int) -> _Measures:
+    """Photometric measurements of the card hypotheses `hs` (P, 3, 3) (layout -> image)
+    for a family of n x n codes. Sorting once per group replaces np.median and
+    np.percentile, which cost ~50 us a call."""
+    plan = _plan(n)
+    vals, inside = _sample(pyr, hs, plan.points)
+    p = vals.shape[0]
+    disc_vals = vals[:, plan.disc]  # (P, 4, D)
+    black = _quantile_sorted(np.sort(disc_vals.reshape(p, -1), axis=1), 0.5)
+    white_sorted = np.sort(vals[:, plan.white], axis=1)
+    white = _quantile_sorted(white_sorted, 0.5)
+    contrast = white - black
+    c = np.maximum(contrast, 1e-3)
+    inner = np.sort(vals[:, np.concatenate([plan.between, plan.gap])], axis=1)
+    uniformity = (_quantile_sorted(inner, 0.9) - _quantile_sorted(inner, 0.1)) / c
+    disc_means = (disc_vals.mean(axis=2) - black[:, None]) / c[:, None]
+    white_low = (_quantile_sorted(white_sorted, WHITE_LOW_PERCENTILE / 100.0) - black) / c
+    gap_low = (np.sort(vals[:, plan.gap], axis=1)[:, 1] - black) / c
+    edge = np.where(inside[:, plan.edge], vals[:, plan.edge], np.inf)  # outside: no evidence
+    edge_sorted = np.sort(edge, axis=1)
+    n_in = inside[:, plan.edge].sum(axis=1)
+    edge_med = np.take_along_axis(edge_sorted, np.maximum(n_in // 2, 0)[:, None], axis=1)[:, 0]
+    edge_level = np.where(n_in >= 4, (edge_med - black) / c, 1.0)
+    cell_vals = (vals[:, plan.cells] - black[:, None, None]) / c[:, None, None]  # (P, n*n, S)
+    # Discs and code must be wholly in the image; the white margin mostly.
+    valid = np.where(inside[:, plan.core].all(axis=1), inside.mean(axis=1), 0.0)
+    dmax, dmin = disc_means.max(axis=1), disc_means.min(axis=1)
+    disc_max = (disc_vals.reshape(p, -1).max(axis=1) - black) / c
+    return _Measures(
+        black=black, white=white, contrast=contrast, uniformity=uniformity,
+        disc_level=dmax, disc_spread=dmax - dmin, disc_max=disc_max, white_low=white_low, gap_low=gap_low, edge_level=edge_level,
+        valid=valid, cells=cell_vals.mean(axis=2), cell_lo=cell_vals.min(axis=2), cell_hi=cell_vals.max(axis=2),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Identification
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CodeMatch:
+    """A decoded code: the id, the vertex shift s (quadrilateral vertex m is card disc
+    (m + s) % 4), cells read wrong (0, or 1 when the family corrects one) and the margin
+    (0..0.5) of the least clear cell."""
+
+    id: int
+    shift: int
+    errors: int
+    margin: float
+
+
+def _decode(cells: np.ndarray, family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vectorised `decode_cells`: for cells (P, n*n) normalised (black 0, white 1):
+    (ok (P,), id (P,), shift (P,), errors (P,), margin (P,))."""
+    tmpl, ids, shifts = _templates(family)
+    fam = get_family(family)
+    cells = np.asarray(cells, np.float32).reshape(-1, fam.cells**2)
+    # A cell is misread when it lies on the wrong side of 0.5 or too close to it: in
+    # either case it is not evidence for the template.
+    dev = np.abs(cells[:, None, :] - tmpl[None, :, :])  # (P, T, n*n)
+    wrong = (dev > 0.5 - CELL_MARGIN).sum(axis=2)
+    ssd = (dev * dev).sum(axis=2)  # the paper's normalised SSD, to rank
+    best = np.argmin(ssd + 1000.0 * wrong, axis=1)
+    rows = np.arange(cells.shape[0])
+    best_wrong = wrong[rows, best]
+    # Second best: any other (id, rotation).
+    wrong2 = wrong.copy()
+    wrong2[rows, best] = 10**6
+    second_wrong = wrong2.min(axis=1)
+    allowed = 1 if fam.min_distance >= 4 else 0  # 3x3 (distance 2): exact reads only
+    ok = (best_wrong <= allowed) & (second_wrong >= best_wrong + 2)
+    margin = np.abs(cells - 0.5)
+    if allowed:
+        # the one corrected cell does not count against the margin
+        right = dev[rows, best] <= 0.5 - CELL_MARGIN
+        margin = np.where(right, margin, 0.5)
+    return ok, ids[best], shifts[best], best_wrong, margin.min(axis=1)
+
+
+def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY) -> CodeMatch | None:
+    """Match code cell values (n, n) or (n*n,), normalised to black 0 / white 1 and read
+    row-major through the quadrilateral's homography, against every code of `family`
+    in every rotation. None when no code matches clearly: for 3x3 (minimum distance 2)
+    every cell must be read clearly and right; for 4x4 (distance 4) one cell may be
+    wrong or unclear, and no other code may come within two cells of the read."""
+    ok, ids, shifts, errors, margin = _decode(np.asarray(cells, np.float32).reshape(1, -1), family)
+    if not ok[0]:
+        return None
+    return CodeMatch(id=int(ids[0]), shift=int(shifts[0]), errors=int(errors[0]), margin=float(margin[0]))
+
+
+def _reorder(quads_px: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Discs in DESIGN order: card disc j is quadrilateral vertex (j - s) % 4."""
+    j = (np.arange(4)[None, :] - shifts[:, None]) % 4
+    return np.take_along_axis(quads_px, j[..., None], axis=1)
+
+
+def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
+             ) -> tuple[int, np.ndarray, CodeMatch] | None:
+    """Read and match the code of the card whose disc centres are `discs` (4, 2), in
+    the layout's orientation starting at any disc. Returns (id, discs reordered to
+    DESIGN order, the match) or None when the code is not read unambiguously."""
+    gray = _as_gray(gray)
+    q = np.asarray(discs, np.float64).reshape(1, 4, 2)
+    if not np.isfinite(q).all():
+        return None
+    hs = homographies(q)
+    m = _measure(_Pyramid(gray), hs, get_family(family).cells)
+    match = decode_cells(m.cells[0], family)
+    if match is None:
+        return None
+    return match.id, _reorder(q, np.array([match.shift]))[0], match
+
+
+# --------------------------------------------------------------------------------------
+# Subpixel disc centres
+# --------------------------------------------------------------------------------------
+
+
+def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE_ITERATIONS,
+                   correct_perspective: bool = True, _pyramid: _Pyramid | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Subpixel disc centres of cards: `discs` (T, 4, 2) approximate centres (layout
+    orientation, any start) -> (centres (T, 4, 2), radii (T, 4) in pixels).
+
+    Each disc's centre is the centroid of darkness ``max(0, white - I)`` over the pixels
+    of an elliptical window: the image of a circle of `REFINE_WINDOW` disc radii around
+    the disc on the card (local affine map of the homography of the four current
+    centres), with a soft edge, centred on the current centroid. The white level is the
+    median of a ring around the disc on the card. Symmetric blur keeps a centroid, and
+    a window symmetric about the centroid truncates the blurred tails symmetrically.
+    Big discs are measured on a pyramid level (cv2.pyrDown: a symmetric blur, so the
+    centroid stays; level pixel i is full-resolution pixel i * 2**L) that keeps the
+    window within `REFINE_MAX_HALF` pixels: subsampling full-resolution pixels instead
+    would alias the disc edge (~0.1 px errors).
+
+    The area centroid of an imaged disc is the centre of its image ellipse, which under
+    perspective is not the projection of the disc's centre; that offset follows exactly
+    from the homography (the image conic of the circle) and is subtracted
+    (`correct_perspective`). Iterated `iterations` times, each with the homography of
+    the previous centres. Radii: sqrt(dark area / pi), the area being the summed
+    darkness over the disc-vs-white contrast.
+    """
+    gray = _as_gray(gray)
+    pyr = _pyramid if _pyramid is not None else _Pyramid(gray)
+    cur = np.array(discs, np.float64).reshape(-1, 4, 2)
+    t = cur.shape[0]
+    radii = np.zeros((t, 4))
+    if t == 0 or not np.isfinite(cur).all():
+        return cur, radii
+    centroid = cur.copy()  # the image-ellipse centres (what the window is centred on)
+    reach = REFINE_WINDOW + REFINE_TAPER
+    for _ in range(max(1, iterations)):
+        hs = homographies(cur)
+        jac = _jacobians(hs, DISC_CENTRES)  # (T, 4, 2, 2) image offset per card offset
+        det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+        if not (np.isfinite(det).all() and (np.abs(det) > 1e-9).all()):
+            break
+        # Half-extent of each window along x and y: reach * R * |row of J|.
+        ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
+                                                       jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2)).max(axis=1)
+        level = np.clip(np.ceil(np.log2(np.maximum((ext + 1.0) / REFINE_MAX_HALF, 1.0))), 0,
+                        pyr.max_level).astype(int)
+        new_centroid = centroid.copy()
+        total = np.zeros((t, 4))
+        contrast = np.ones((t, 4))
+        for lv in np.unique(level).tolist():
+            rows = np.flatnonzero(level == lv)
+            scale = 2.0**lv
+            c, tot, con = _centroid_step(pyr.get(lv), centroid[rows] / scale, jac[rows] / scale, reach)
+            new_centroid[rows] = c * scale
+            total[rows] = tot * scale * scale
+            contrast[rows] = con
+        good = total > 1e-6
+        centroid = np.where(good[..., None], new_centroid, centroid)
+        new = centroid
+        if correct_perspective:
+            bias = _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - _apply(hs, DISC_CENTRES)
+            new = centroid - bias
+        cur = np.where(good[..., None], new, cur)
+        radii = np.sqrt(np.maximum(total / np.maximum(contrast, 1e-3), 0.0) / np.pi)
+    return cur, radii
+
+
+def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One centroid update of discs at `centroid` (T, 4, 2) in the pixels of `img`, with
+    `jac` (T, 4, 2, 2) the image offset per card offset at each disc: (new centroids,
+    summed darkness (T, 4), white - black (T, 4))."""
+    t = centroid.shape[0]
+    h, w = img.shape
+    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    # inverse Jacobian over the disc radius: disc radii per image offset
+    s = 1.0 / (det * DISC_RADIUS)
+    a00, a01 = jac[..., 1, 1] * s, -jac[..., 0, 1] * s
+    a10, a11 = -jac[..., 1, 0] * s, jac[..., 0, 0] * s
+    ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
+                                                   jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2))
+    k = int(np.ceil(ext.max())) + 1
+    offs = np.arange(-k, k + 1, dtype=np.float64)
+    base = np.rint(centroid)  # (T, 4, 2)
+    xs = base[..., 0, None, None] + offs[None, None, None, :]  # (T, 4, 1, S)
+    ys = base[..., 1, None, None] + offs[None, None, :, None]  # (T, 4, S, 1)
+    valid = ((xs >= 0) & (xs < w)) & ((ys >= 0) & (ys < h))
+    pix = img[np.clip(ys, 0, h - 1).astype(np.intp), np.clip(xs, 0, w - 1).astype(np.intp)].astype(np.float64)
+    dx = xs - centroid[..., 0, None, None]
+    dy = ys - centroid[..., 1, None, None]
+    u = a00[..., None, None] * dx + a01[..., None, None] * dy
+    v = a10[..., None, None] * dx + a11[..., None, None] * dy
+    rho2 = u * u + v * v  # squared distance from the centroid in disc radii, on the card
+    flat = pix.reshape(t, 4, -1)
+    ring = (valid & (rho2 >= REFINE_RING[0] ** 2) & (rho2 <= REFINE_RING[1] ** 2)).reshape(t, 4, -1)
+    white = _masked_median(flat, ring)
+    inner = (valid & (rho2 <= 0.25)).reshape(t, 4, -1)
+    black = (flat * inner).sum(axis=2) / np.maximum(inner.sum(axis=2), 1)
+    taper = np.clip((reach - np.sqrt(rho2)) / REFINE_TAPER, 0.0, 1.0) * valid
+    weight = np.maximum(white[..., None, None] - pix, 0.0) * taper
+    total = weight.sum(axis=(2, 3))
+    good = (total > 1e-6) & np.isfinite(white)
+    safe = np.where(good, total, 1.0)
+    mx = (weight * dx).sum(axis=(2, 3)) / safe
+    my = (weight * dy).sum(axis=(2, 3)) / safe
+    new = centroid + np.stack([mx, my], -1)
+    return np.where(good[..., None], new, centroid), np.where(good, total, 0.0), white - black
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median over the last axis of the entries where `mask` is set (NaN if none);
+    one sort, unlike np.nanmedian's per-row loop."""
+    v = np.sort(np.where(mask, values, np.inf), axis=-1)
+    count = mask.sum(axis=-1)
+    lo = np.take_along_axis(v, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(v, np.maximum(count // 2, 0)[..., None], axis=-1)[..., 0]
+    return np.where(count > 0, 0.5 * (lo + hi), np.nan)
+
+
+def _jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(P, K, 2, 2) Jacobians d(image)/d(card) of each homography at card points (K, 2)."""
+    x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
+    w = x[..., 2]
+    u = x[..., 0] / w
+    v = x[..., 1] / w
+    j = np.empty(x.shape[:2] + (2, 2))
+    j[..., 0, 0] = (hs[:, None, 0, 0] - u * hs[:, None, 2, 0]) / w
+    j[..., 0, 1] = (hs[:, None, 0, 1] - u * hs[:, None, 2, 1]) / w
+    j[..., 1, 0] = (hs[:, None, 1, 0] - v * hs[:, None, 2, 0]) / w
+    j[..., 1, 1] = (hs[:, None, 1, 1] - v * hs[:, None, 2, 1]) / w
+    return j
+
+
+# --------------------------------------------------------------------------------------
+# The whole stage
+# --------------------------------------------------------------------------------------
+
+
+def _as_gray(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if a.ndim != 2:
+        raise ValueError(f"expected a greyscale image, got shape {a.shape}")
+    if a.dtype != np.uint8:
+        a = np.clip(np.rint(a), 0, 255).astype(np.uint8)
+    return a
+
+
+def _predicted_radii(hs: np.ndarray) -> np.ndarray:
+    """(P, 4) imaged disc radii the homographies predict (sqrt of the local area scale)."""
+    jac = _jacobians(hs, DISC_CENTRES)
+    return DISC_RADIUS * np.sqrt(np.abs(jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]))
+
+
+def _radius_spread(hs: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(P,) log(max / min) over the four discs of measured radius / radius predicted by
+    the homography."""
+    pred = _predicted_radii(hs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.log(np.maximum(radii, 1e-9) / np.maximum(pred, 1e-9))
+    spread = ratio.max(axis=1) - ratio.min(axis=1)
+    return np.where(np.isfinite(spread), spread, np.inf)
+
+
+def _score(m: _Measures, rows: np.ndarray, margin: np.ndarray) -> np.ndarray:
+    """Confidence 0..1 from how clearly each check passed (the weakest one)."""
+    parts = np.stack([
+        np.clip(margin[rows] / 0.5, 0, 1) if margin.size else np.ones(rows.size),
+        np.clip((MAX_DISC_LEVEL + 0.15 - m.disc_level[rows]) / (MAX_DISC_LEVEL + 0.15), 0, 1),
+        np.clip((m.white_low[rows] - MIN_WHITE_LOW + 0.1) / (1.1 - MIN_WHITE_LOW), 0, 1),
+        np.clip((m.gap_low[rows] - MIN_GAP_LEVEL + 0.1) / (1.1 - MIN_GAP_LEVEL), 0, 1),
+        np.clip((MAX_WHITE_SPREAD + 0.1 - m.uniformity[rows]) / (MAX_WHITE_SPREAD + 0.1), 0, 1),
+    ])
+    return parts.min(axis=0) ** 0.5
+
+
+def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEFAULT_FAMILY
+                     ) -> list[DetectedTarget]:
+    """Identified targets in a uint8 greyscale frame from its disc candidates (N, 4)
+    ``[u, v, radius, score]`` (full-resolution pixels): group, verify, refine, identify.
+
+    Each id appears at most once (the best-scoring quadrilateral keeps it) and no
+    candidate belongs to two targets. Degenerate input gives [].
+    """
+    fam = get_family(family)
+    gray = _as_gray(gray)
+    cand = np.asarray(candidates, np.float64)
+    if cand.ndim != 2 or cand.shape[0] < 4 or cand.shape[1] < 3:
+        return []
+    quads = group_candidates(cand)
+    if quads.shape[0] == 0:
+        return []
+    pts = cand[quads, :2]  # (P, 4, 2)
+    pyr = _Pyramid(gray)
+    hs = homographies(pts)
+    quick = np.flatnonzero(_quick_check(pyr, hs))
+    if quick.size == 0:
+        return []
+    quads, pts, hs = quads[quick], pts[quick], hs[quick]
+    m = _measure(pyr, hs, fam.cells)
+    keep = np.flatnonzero(m.passed())
+    if keep.size == 0:
+        return []
+    quads, pts = quads[keep], pts[keep]
+    refined, radii = refine_centres(gray, pts, _pyramid=pyr)
+    hs = homographies(refined)
+    m = _measure(pyr, hs, fam.cells)
+    ok, ids, shifts, errors, margin = _decode(m.cells, family)
+    ok &= m.passed() & np.isfinite(refined).all(axis=(1, 2))
+    # With the centres refined, every sample inside every disc must be dark (a disc
+    # half hidden by another card, or a blob that is no disc, has light ones).
+    ok &= m.disc_max <= MAX_DISC_SAMPLE
+    # Refinement must stay on its candidate's disc (not be pulled to a neighbour):
+    # within 60% of the disc radius the homography predicts.
+    moved = np.hypot(*(refined - pts).transpose(2, 0, 1))
+    ok &= (moved <= np.maximum(2.0, MAX_REFINE_SHIFT * _predicted_radii(hs))).all(axis=1)
+    # Four points fix a homography exactly, so a disc of another card (an overlapping
+    # one) or a half-hidden disc still gives a consistent-looking quadrilateral; its dark
+    # area, though, disagrees with the size the homography predicts for it. Blur and
+    # exposure scale all four alike, so only the spread of the ratios is tested.
+    ok &= _radius_spread(hs, radii) <= MAX_RADIUS_SPREAD
+    rows = np.flatnonzero(ok)
+    if rows.size == 0:
+        return []
+    score = _score(m, rows, margin)
+    order = rows[np.argsort(-score, kind="stable")]
+    score_of = dict(zip(rows.tolist(), score.tolist(), strict=True))
+    used_ids: set[int] = set()
+    used_cands: set[int] = set()
+    out: list[DetectedTarget] = []
+    for r in order.tolist():
+        tid = int(ids[r])
+        members = set(quads[r].tolist())
+        if tid in used_ids or members & used_cands:
+            continue
+        used_ids.add(tid)
+        used_cands |= members
+        s = np.array([shifts[r]])
+        discs = _reorder(refined[r : r + 1], s)[0]
+        rad = _reorder(radii[r : r + 1, :, None], s)[0, :, 0]
+        out.append(DetectedTarget(id=tid, discs=discs, score=float(score_of[r]), disc_radii=rad))
+    out.sort(key=lambda t: t.id)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Simulated candidates (tests and benchmarks)
+# --------------------------------------------------------------------------------------
+
+
+def simulate_candidates(
+    gray: np.ndarray,
+    targets: Sequence[Any],
+    rng: np.random.Generator,
+    family: str = DEFAULT_FAMILY,
+    n_random: int = 30,
+    n_texture: int = 30,
+    code_cells: bool = True,
+    card_corners: bool = True,
+    jitter_px: float = 1.0,
+    radius_factor: tuple[float, float] = (0.7, 1.4),
+) -> np.ndarray:
+    """Candidates (N, 4) float32 as the candidate stage might report them, from ground
+    truth (objects with ``id``, ``discs_px`` (4, 2), ``disc_visible`` (4,) and
+    ``disc_diameter_px``, e.g. `scenes.TargetTruth`): every visible disc within
+    ±`jitter_px` and its radius off by a random factor, plus false candidates: the
+    black code cells of every card (its own homography), card corners, random points
+    and dark texture spots of `gray`."""
+    rows: list[list[float]] = []
+    fam = get_family(family)
+    n = fam.cells
+    step = CODE_SIZE / n
+    for t in targets:
+        discs = np.asarray(t.discs_px, np.float64)
+        vis = np.asarray(t.disc_visible, bool)
+        r = 0.5 * float(t.disc_diameter_px)
+        for k in range(4):
+            if vis[k] and np.isfinite(discs[k]).all():
+                u, v = discs[k] + rng.uniform(-jitter_px, jitter_px, 2)
+                rows.append([u, v, r * rng.uniform(*radius_factor), rng.uniform(0.5, 1.0)])
+        if not np.isfinite(discs).all():
+            continue
+        hs = homographies(discs[None])
+        extra = []
+        if code_cells and 0 <= int(t.id) < len(fam):
+            code = fam.code(int(t.id))
+            rr, cc = np.nonzero(code)
+            extra.append(np.stack([CODE_ORIGIN + (cc + 0.5) * step, CODE_ORIGIN + (rr + 0.5) * step], 1))
+        if card_corners:
+            extra.append(np.array([[0.03, 0.03], [0.97, 0.03], [0.97, 0.97], [0.03, 0.97]]))
+        if extra:
+            p = _apply(hs, np.concatenate(extra))[0]
+            for u, v in p:
+                rows.append([u, v, r * 0.45 * rng.uniform(*radius_factor), rng.uniform(0.0, 0.8)])
+    h, w = gray.shape[:2]
+    for _ in range(n_random):
+        rows.append([rng.uniform(0, w - 1), rng.uniform(0, h - 1), float(np.exp(rng.uniform(np.log(2), np.log(25)))),
+                     rng.uniform(0.0, 0.8)])
+    if n_texture:
+        g = cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), 2.0)
+        mins = (g <= cv2.erode(g, np.ones((5, 5), np.uint8))) & (g < cv2.blur(g, (15, 15)) - 3)
+        ys, xs = np.nonzero(mins)
+        if ys.size:
+            pick = rng.choice(ys.size, size=min(n_texture, ys.size), replace=False)
+            for y, x in zip(ys[pick], xs[pick], strict=True):
+                rows.append([x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5),
+                             rng.uniform(2.0, 12.0), rng.uniform(0.0, 0.8)])
+    out = np.array(rows, np.float32).reshape(-1, 4)
+    return out[rng.permutation(out.shape[0])]

@@ -1,0 +1,48 @@
+"""Classifiers: list, inspect, and train a new one from a site's own images (a job)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
+
+from app.deps import JobsDep, SessionDep, SettingsDep
+from app.routers.uploads import check_declared_length, read_upload
+from app.schemas import ClassifierOut, JobOut, Problem
+from app.services import classifiers
+
+router = APIRouter(prefix="/classifiers", tags=["classifiers"])
+_404 = {404: {"model": Problem, "description": "No such classifier"}}
+
+
+@router.get("", response_model=list[ClassifierOut])
+def list_classifiers(session: SessionDep) -> list[ClassifierOut]:
+    return classifiers.list_all(session)
+
+
+@router.get("/{classifier_id}", response_model=ClassifierOut, responses=_404)
+def get_classifier(classifier_id: int, session: SessionDep) -> ClassifierOut:
+    return classifiers.get(session, classifier_id)
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
+             responses={413: {"model": Problem}, 422: {"model": Problem}, **_404})
+async def train_classifier(
+    request: Request,
+    response: Response,
+    session: SessionDep,
+    settings: SettingsDep,
+    runner: JobsDep,
+    images: Annotated[list[UploadFile], File(description="JPEG/PNG frames of the site with targets in view.")],
+    name: Annotated[str, Form(min_length=1, max_length=200)],
+    base_classifier_id: Annotated[int | None, Form(description="Classifier to adapt; default if omitted.")] = None,
+    family: Annotated[str, Form()] = "fido3x3",
+) -> JobOut:
+    """Adapt a classifier to a site's own images (odd lighting, odd cameras): targets
+    the current detector finds and verifies become positives, the candidates it
+    rejects become hard negatives. Returns the job (202, ``Location: /jobs/{id}``)."""
+    check_declared_length(request, settings.max_upload_bytes)
+    blobs = [await read_upload(upload, settings.max_image_bytes) for upload in images]
+    job = classifiers.submit_training(session, runner, settings, blobs, name, base_classifier_id, family)
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return job
