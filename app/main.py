@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse
 from app import __version__
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
 from app.routers import classifiers as classifiers_router
-from app.routers import detect, environments, health, jobs, markers, track
+from app.routers import detect, environments, health, jobs, markers, surveys, track
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
@@ -91,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(health.router)
     app.include_router(environments.router)
+    app.include_router(surveys.router)
     app.include_router(markers.router)
     app.include_router(detect.router)
     app.include_router(classifiers_router.router)

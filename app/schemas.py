@@ -230,6 +230,50 @@ class LocateResponse(BaseModel):
     timing_ms: dict[str, float]
 
 
+# --- alignment ----------------------------------------------------------------------
+
+
+class AlignmentPoint(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    target_id: int = Field(ge=0)
+    disc: int = Field(ge=0, le=3, description="Disc index 0..3 (DESIGN.md order).")
+    world: Vec3 = Field(description="Known world position of that disc centre (m).")
+
+
+class AlignmentRequest(BaseModel):
+    """Either ``points`` (3 or more, not collinear) or ``origin_target_id``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    points: list[AlignmentPoint] | None = Field(None, max_length=10_000)
+    origin_target_id: int | None = Field(
+        None, ge=0, description="This target's centre becomes the origin, its plane z = 0, x along disc 0 -> 1."
+    )
+    allow_scale: bool = Field(True, description="Fit the scale too (a similarity); false keeps the survey's scale.")
+
+    @model_validator(mode="after")
+    def _one_way(self) -> AlignmentRequest:
+        if (self.points is None) == (self.origin_target_id is None):
+            raise ValueError("give either points or origin_target_id")
+        return self
+
+
+class AlignmentResidual(BaseModel):
+    target_id: int
+    disc: int
+    residual_m: float
+
+
+class AlignmentResult(BaseModel):
+    scale: float
+    R: list[list[float]]
+    t: list[float] = Field(description="x_world = scale * R @ x_map + t")
+    residuals: list[AlignmentResidual]
+    rms_m: float
+    map: MapDocument
+
+
 # --- health -------------------------------------------------------------------------
 
 

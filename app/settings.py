@@ -27,6 +27,10 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(40_000_000, ge=64 * 64, description="Largest width*height decoded.")
     max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame.")
     max_training_images: int = Field(200, ge=1, description="Most images in one training upload.")
+    max_video_frames: int = Field(20_000, ge=1, description="Longest survey video, in frames.")
+    max_video_pixels: int = Field(3840 * 2160, ge=64 * 64, description="Largest survey video frame (width*height).")
+    max_survey_images: int = Field(2000, ge=1, description="Most images in one survey upload.")
+    survey_frames: int = Field(400, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
     max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
 

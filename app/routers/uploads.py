@@ -53,7 +53,7 @@ async def read_image_body(request: Request, limit: int) -> bytes:
         form = await request.form(max_files=1, max_fields=8)
         part = form.get("image")
         if not isinstance(part, StarletteUploadFile):
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, "image: a file field named 'image' is required")
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "image: a file field named 'image' is required")
         return await read_upload(part, limit)
     chunks, size = [], 0
     async for chunk in request.stream():

@@ -87,6 +87,14 @@ def get_map(session: Session, environment_id: int) -> MapDocument:
 def put_map(session: Session, environment_id: int, document: MapDocument) -> MapDocument:
     """Replace the environment's map whole, in one transaction; a refused document
     leaves the stored map as it was."""
+    stage_map(session, environment_id, document)
+    session.commit()
+    return document
+
+
+def stage_map(session: Session, environment_id: int, document: MapDocument) -> None:
+    """Check `document` against the environment and stage it as the new map; the caller
+    commits (a survey job commits it together with its own success)."""
     environment = _environment(session, environment_id)
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
@@ -103,5 +111,3 @@ def put_map(session: Session, environment_id: int, document: MapDocument) -> Map
     stored.rms_px = document.rms_px
     stored.survey_job_id = document.survey_job_id
     stored.document = document.model_dump(mode="json")
-    session.commit()
-    return document

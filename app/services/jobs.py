@@ -39,6 +39,7 @@ ACTIVE = ("queued", "running")
 # process imports only what its job needs.
 HANDLERS: dict[str, str] = {
     "train_classifier": "app.services.classifiers:run_training_job",
+    "survey": "app.services.surveys:run_survey_job",
 }
 
 

@@ -1,0 +1,60 @@
+"""Surveys (a job: video or images in, map out) and alignment of a map to the world."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
+
+from app.deps import JobsDep, SessionDep, SettingsDep
+from app.routers.uploads import check_declared_length
+from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
+from app.services import alignments, surveys
+
+router = APIRouter(prefix="/environments", tags=["surveys"])
+
+
+@router.post(
+    "/{environment_id}/survey",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobOut,
+    responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
+)
+def start_survey(
+    environment_id: int,
+    request: Request,
+    response: Response,
+    session: SessionDep,
+    settings: SettingsDep,
+    runner: JobsDep,
+    video: Annotated[UploadFile | None, File(description="Calibration video: MP4, MOV or AVI.")] = None,
+    images: Annotated[list[UploadFile] | None, File(description="Or: JPEG/PNG frames, in order.")] = None,
+    marker_size_m: Annotated[float | None, Form(description="Printed card side; default: the environment's.")] = None,
+    intrinsics: Annotated[str | None, Form(description='JSON {"width","height","K","dist"}: fixes the camera.')] = None,
+    max_frames: Annotated[int | None, Form(description="Frames to use, evenly spaced (default from settings).")] = None,
+) -> JobOut:
+    """Survey the environment from a video of it (or a set of images): structure from
+    motion gives the camera's focal length, principal point and distortion and the 3D
+    position of every disc. Returns the job (202, ``Location: /jobs/{id}``); on success
+    it replaces the environment's map in one transaction."""
+    check_declared_length(request, settings.max_upload_bytes)
+    job = surveys.submit_survey(
+        session, runner, settings, environment_id,
+        video.file if video is not None else None,
+        [upload.file for upload in images or []],
+        marker_size_m, intrinsics, max_frames,
+    )
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return job
+
+
+@router.post(
+    "/{environment_id}/alignment",
+    response_model=AlignmentResult,
+    responses={404: {"model": Problem}, 422: {"model": Problem}},
+)
+def align_map(environment_id: int, spec: AlignmentRequest, session: SessionDep) -> AlignmentResult:
+    """Move the map into world coordinates: a similarity transform (scale, rotation,
+    translation) fitted to three or more discs with known world positions (residuals in
+    the reply), or one target chosen as the origin with its plane as z = 0."""
+    return alignments.align(session, environment_id, spec)

@@ -1,0 +1,263 @@
+"""Surveys: a calibration video (or a set of images) in, the environment's map out.
+
+The upload is checked whole in the request (container allow-list by magic bytes,
+OpenCV can open it and read a first frame, resolution and length within the limits;
+images decodable by header), stored under server-chosen names and handed to a job.
+The job, in a worker process, detects targets in the chosen frames with the
+environment's classifier, runs structure from motion (`app.core.survey`) and stores
+the map in the same transaction that marks the job succeeded: a failed or cancelled
+survey leaves the previous map untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import cv2
+import numpy as np
+from pydantic import ValidationError
+from sqlalchemy.orm import Session
+
+from app.core.camera import Camera
+from app.core.detector import Detector
+from app.core.imagecodec import PNG_MAGIC, decode_gray
+from app.models import Environment
+from app.schemas import CameraModel, JobOut, MapDocument
+from app.services import classifiers, environments, jobs
+from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia, get_or_404
+from app.services.jobs import JobRunner
+from app.settings import Settings
+
+_CHUNK = 1024 * 1024
+#: ISO base media (MP4, MOV) box types that may open a file.
+_ISO_BOXES = (b"ftyp", b"moov", b"mdat", b"wide", b"free", b"skip", b"pnot")
+#: Codecs OpenCV's FFmpeg backend reads reliably (FOURCC as OpenCV reports it).
+ALLOWED_CODECS = frozenset({
+    "avc1", "h264", "H264", "x264", "X264", "hev1", "hvc1", "hevc", "HEVC", "mp4v", "MP4V", "FMP4", "XVID", "xvid",
+    "DIVX", "MJPG", "mjpg", "jpeg", "MJPEG", "vp09", "VP90", "av01", "AV01",
+})
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    width: int
+    height: int
+    frames: int
+    fps: float
+    codec: str
+
+
+def video_container(head: bytes) -> str | None:
+    """'mp4' (also MOV), 'avi' or None from the first bytes of a file."""
+    if len(head) >= 12 and head[4:8] in _ISO_BOXES:
+        return "mp4"
+    if len(head) >= 12 and head[:4] == b"RIFF" and head[8:12] == b"AVI ":
+        return "avi"
+    return None
+
+
+def _save_stream(stream: BinaryIO, path: Path, limit: int, budget: list[int]) -> int:
+    """Copy an upload to `path` in chunks; 413 once the whole upload passes `limit`."""
+    written = 0
+    with path.open("wb") as out:
+        while chunk := stream.read(_CHUNK):
+            written += len(chunk)
+            budget[0] += len(chunk)
+            if budget[0] > limit:
+                raise TooLarge(f"upload exceeds the limit of {limit} bytes")
+            out.write(chunk)
+    return written
+
+
+def probe_video(path: Path, settings: Settings) -> VideoInfo:
+    """Open a stored video with OpenCV and check it against the limits (4xx if not)."""
+    with path.open("rb") as fh:
+        head = fh.read(16)
+    if video_container(head) is None:
+        raise UnsupportedMedia("video: not an MP4, MOV or AVI file (unrecognised container)")
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not capture.isOpened():
+            raise Invalid("video: cannot be opened (corrupt or truncated file?)")
+        width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH))
+        height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+        fourcc = int(capture.get(cv2.CAP_PROP_FOURCC))
+        codec = "".join(chr((fourcc >> (8 * i)) & 0xFF) for i in range(4)).strip("\x00 ")
+        if width <= 0 or height <= 0:
+            raise Invalid("video: no video stream")
+        if width * height > settings.max_video_pixels:
+            raise TooLarge(f"video: {width}x{height} exceeds the limit of {settings.max_video_pixels} pixels")
+        if frames > settings.max_video_frames:
+            raise TooLarge(f"video: {frames} frames exceed the limit of {settings.max_video_frames}")
+        if codec and codec not in ALLOWED_CODECS:
+            raise UnsupportedMedia(f"video: codec {codec!r} is not supported; use H.264, HEVC, MPEG-4 or MJPEG")
+        ok, _ = capture.read()
+        if not ok:
+            raise Invalid("video: no frame could be decoded (corrupt or truncated file?)")
+    finally:
+        capture.release()
+    return VideoInfo(width, height, frames, fps, codec)
+
+
+def parse_intrinsics(text: str | None) -> dict[str, Any] | None:
+    if text is None or not text.strip():
+        return None
+    try:
+        return CameraModel.model_validate(json.loads(text)).model_dump()
+    except json.JSONDecodeError as exc:
+        raise Invalid(f"intrinsics: not JSON ({exc.msg})") from None
+    except ValidationError as exc:
+        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise Invalid(f"intrinsics: {detail}") from None
+
+
+def submit_survey(
+    session: Session,
+    runner: JobRunner,
+    settings: Settings,
+    environment_id: int,
+    video: BinaryIO | None,
+    images: Sequence[BinaryIO],
+    marker_size_m: float | None,
+    intrinsics: str | None,
+    max_frames: int | None,
+) -> JobOut:
+    """Check and store the upload, queue the survey job. Nothing stays on disk and no
+    row is written when the upload is refused."""
+    environment = get_or_404(session, Environment, environment_id, "environment")
+    if (video is None) == (not images):
+        raise Invalid("give either a 'video' file or one or more 'images' files")
+    if marker_size_m is not None and not (0.0 < marker_size_m <= 10.0):
+        raise Invalid("marker_size_m: must be in (0, 10] metres")
+    if max_frames is not None and not (2 <= max_frames <= settings.max_video_frames):
+        raise Invalid(f"max_frames: must be between 2 and {settings.max_video_frames}")
+    if len(images) > settings.max_survey_images:
+        raise Invalid(f"images: at most {settings.max_survey_images} images per survey")
+    camera = parse_intrinsics(intrinsics)
+    classifier_id = environment.classifier_id or classifiers.default_id(session)
+    job_id = jobs.new_job_id()
+    folder = jobs.uploads_dir(settings.data_dir, job_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        budget = [0]
+        params: dict[str, Any] = {
+            "upload_dir": str(folder),
+            "marker_size_m": float(marker_size_m or environment.marker_size_m),
+            "intrinsics": camera,
+            "max_frames": int(max_frames or settings.survey_frames),
+            "classifier_id": classifier_id,
+            "family": environment.marker_family,
+            "max_pixels": settings.max_image_pixels,
+        }
+        if video is not None:
+            path = folder / "video"
+            _save_stream(video, path, settings.max_upload_bytes, budget)
+            info = probe_video(path, settings)
+            params.update(source="video", video=str(path), video_frames=info.frames, width=info.width,
+                          height=info.height)
+        else:
+            size = None
+            for index, stream in enumerate(images):
+                path = folder / f"image_{index:05d}"
+                _save_stream(stream, path, settings.max_upload_bytes, budget)
+                data = path.read_bytes()
+                try:
+                    from app.services.detection import decode
+
+                    gray = decode(data, settings)
+                except ServiceError as exc:
+                    exc.detail = f"images[{index}]: {exc.detail}"
+                    raise
+                if size is None:
+                    size = gray.shape
+                elif gray.shape != size:
+                    raise Invalid(f"images[{index}]: {gray.shape[1]}x{gray.shape[0]} differs from the first "
+                                  f"image's {size[1]}x{size[0]}; one camera, one resolution")
+                path.rename(path.with_suffix(".png" if data.startswith(PNG_MAGIC) else ".jpg"))
+            assert size is not None
+            params.update(source="images", width=int(size[1]), height=int(size[0]))
+        if camera is not None and (camera["width"], camera["height"]) != (params["width"], params["height"]):
+            scaled = Camera.from_dict(camera).scaled_to(params["width"], params["height"])
+            params["intrinsics"] = scaled.to_dict()
+        job = jobs.create(session, "survey", params, environment_id=environment_id, job_id=job_id)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    runner.submit(job.id, job.kind)
+    return jobs.job_out(job)
+
+
+# --- in the worker process -----------------------------------------------------------
+
+
+def _chosen(total: int, wanted: int) -> np.ndarray:
+    """`wanted` frame indices spread evenly over `total` (all when fewer)."""
+    if total <= wanted:
+        return np.arange(total)
+    return np.unique(np.round(np.linspace(0, total - 1, wanted)).astype(int))
+
+
+def read_frames(params: dict[str, Any]) -> Iterator[tuple[int, int, np.ndarray]]:
+    """(position, count, greyscale frame) of the frames the survey uses."""
+    if params["source"] == "video":
+        capture = cv2.VideoCapture(params["video"], cv2.CAP_FFMPEG)
+        try:
+            total = int(params["video_frames"]) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+            chosen = _chosen(total, int(params["max_frames"]))
+            wanted = set(chosen.tolist())
+            index = position = 0
+            while position < len(chosen) and capture.grab():
+                if index in wanted:
+                    ok, frame = capture.retrieve()
+                    if ok:
+                        yield position, len(chosen), cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                    position += 1
+                index += 1
+        finally:
+            capture.release()
+    else:
+        files = sorted(Path(params["upload_dir"]).glob("image_*"))
+        chosen = _chosen(len(files), int(params["max_frames"]))
+        for position, k in enumerate(chosen.tolist()):
+            yield position, len(chosen), decode_gray(files[k].read_bytes(), int(params["max_pixels"]))
+
+
+def run_survey_job(context: Any) -> dict[str, Any]:
+    """Job handler: detect, reconstruct, store the map (see the module docstring)."""
+    from app.core.survey import SurveyError, survey
+
+    params = context.params
+    with context.sessions() as session:
+        detector = Detector(classifiers.load(session, int(params["classifier_id"])), str(params["family"]))
+    detections = []
+    context.progress("detecting targets", 0.0)
+    for position, count, gray in read_frames(params):
+        detections.append(detector.detect(gray).targets)
+        context.progress("detecting targets", 0.5 * (position + 1) / count,
+                         f"frame {position + 1} of {count}")
+    found = sum(len(d) for d in detections)
+    if found == 0:
+        raise SurveyError(f"no target was found in any of the {len(detections)} frames: "
+                          "check the video shows the printed targets, in focus and lit")
+    intrinsics = Camera.from_dict(params["intrinsics"]) if params.get("intrinsics") else None
+
+    def progress(stage: str, fraction: float) -> None:
+        context.progress(stage, 0.5 + 0.48 * min(max(fraction, 0.0), 1.0))
+
+    result = survey(detections, int(params["width"]), int(params["height"]), float(params["marker_size_m"]),
+                    intrinsics=intrinsics, progress=progress)
+    document = MapDocument.model_validate(result.to_map_document(frame="survey", survey_job_id=context.job_id))
+    summary = result.summary()
+    # The calibration trajectory: the camera of each frame used (None: not registered).
+    summary.update({"frames_used": len(detections), "detections": found,
+                    "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
+    with context.finishing(summary) as session:
+        environments.stage_map(session, int(context.environment_id), document)
+    return summary

@@ -1,0 +1,252 @@
+"""The automatic survey (structure from motion over a calibration video) and alignment."""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+from app.core.alignment import (
+    Similarity,
+    alignment_residuals,
+    similarity_from_points,
+    target_origin_alignment,
+)
+from app.core.camera import Camera, Pose
+from app.core.scenes import Scene, camera_walk, frame_truth, render_walk, room_scene
+from app.core.survey import SurveyError, SurveyResult, focal_from_cards, survey
+from app.core.targets import DetectedTarget
+
+ROOM = (4.0, 3.0, 2.5)
+CAMERA = Camera(np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]),
+                np.array([-0.1, 0.0, 0.0, 0.0, 0.0]), 640, 480)
+SIZE = 0.2
+
+
+@functools.cache
+def _room() -> tuple[Scene, tuple[Pose, ...]]:
+    rng = np.random.default_rng(7)
+    scene = room_scene(rng, size=ROOM, n_targets=10, marker_size_m=SIZE)
+    return scene, tuple(camera_walk(rng, ROOM, 80, kind="calibration"))
+
+
+def _synthetic_frames(sigma: float, seed: int = 0) -> list[list[DetectedTarget]]:
+    """Projections of the true discs of every visible target, plus Gaussian noise."""
+    scene, poses = _room()
+    rng = np.random.default_rng(seed)
+    frames = []
+    for pose in poses:
+        truth = frame_truth(CAMERA, pose, scene)
+        frames.append([DetectedTarget(t.id, t.discs_px + rng.normal(0, sigma, (4, 2)), 1.0)
+                       for t in truth.visible_targets()])
+    return frames
+
+
+def _disc_rms(result: SurveyResult, scene: Scene, scale: bool = False) -> float:
+    truth = {t.id: t.discs for t in scene.targets}
+    src = np.concatenate([t.discs for t in result.targets])
+    dst = np.concatenate([truth[t.id] for t in result.targets])
+    similarity = similarity_from_points(src, dst, with_scale=scale)
+    return float(np.sqrt(np.mean(alignment_residuals(similarity, src, dst) ** 2)))
+
+
+# --- synthetic detections: fast and exact checks ----------------------------------------
+
+
+def test_synthetic_survey_recovers_lens_and_map() -> None:
+    scene, poses = _room()
+    frames = _synthetic_frames(0.1)
+    stages: list[tuple[str, float]] = []
+    result = survey(frames, 640, 480, SIZE, progress=lambda s, f: stages.append((s, f)))
+    assert abs(result.camera.fx / CAMERA.fx - 1) < 0.003, result.camera
+    assert abs(result.camera.dist[0] - CAMERA.dist[0]) < 0.02
+    assert np.hypot(result.camera.cx - CAMERA.cx, result.camera.cy - CAMERA.cy) < 5.0
+    assert len(result.targets) == len({t.id for f in frames for t in f})
+    # Metric without any scale fitting to the truth: the card layout fixes it.
+    assert _disc_rms(result, scene) < 0.002
+    assert result.rms_px < 0.2
+    assert result.n_registered >= 0.9 * sum(bool(f) for f in frames)
+    assert len(result.trajectory) == len(frames)
+    # Registered poses are the true ones, in the survey frame: align and compare.
+    truth = {t.id: t.discs for t in scene.targets}
+    sim = similarity_from_points(np.concatenate([t.discs for t in result.targets]),
+                                 np.concatenate([truth[t.id] for t in result.targets]))
+    errors = [np.linalg.norm(sim.apply_pose(p).position - q.position)
+              for p, q in zip(result.trajectory, poses, strict=True) if p is not None]
+    assert np.median(errors) < 0.01
+    # Progress: named stages, fractions in [0, 1], ending at 1.
+    assert stages[-1] == ("done", 1.0) and all(0.0 <= f <= 1.0 for _, f in stages)
+    # Uncertainties are real numbers of the right order (detector noise 0.1 px).
+    std = np.concatenate([t.std_m for t in result.targets])
+    assert np.isfinite(std).all() and 1e-5 < np.median(std) < 0.01
+
+
+def test_misidentified_views_are_removed() -> None:
+    scene, _ = _room()
+    frames = _synthetic_frames(0.1, seed=1)
+    # Relabel one target as another in a few frames (a misread code): same pixels,
+    # wrong id, so the views land on the wrong 3D points.
+    ids_seen = sorted({t.id for f in frames for t in f})
+    wrong_id = ids_seen[0]
+    injected = 0
+    for f in frames:
+        ids = {t.id for t in f}
+        if wrong_id in ids or not f or injected >= 4:
+            continue
+        victim = f[0]
+        f[0] = DetectedTarget(wrong_id, victim.discs, 1.0)
+        injected += 1
+    assert injected == 4
+    result = survey(frames, 640, 480, SIZE)
+    assert result.n_rejected_views >= injected
+    assert _disc_rms(result, scene) < 0.003
+    assert result.rms_px < 0.3
+
+
+def test_fixed_intrinsics_are_held() -> None:
+    scene, _ = _room()
+    result = survey(_synthetic_frames(0.1, seed=2), 640, 480, SIZE, intrinsics=CAMERA)
+    assert result.intrinsics_fixed
+    assert result.camera == CAMERA
+    assert _disc_rms(result, scene) < 0.002
+
+
+def test_subsampling_and_trajectory_length() -> None:
+    frames = _synthetic_frames(0.1, seed=3)
+    result = survey(frames, 640, 480, SIZE, max_frames=40)
+    assert len(result.frames_used) == 40
+    assert len(result.trajectory) == len(frames)
+    unused = set(range(len(frames))) - set(result.frames_used)
+    assert all(result.trajectory[i] is None for i in unused)
+
+
+def test_map_document_is_valid() -> None:
+    result = survey(_synthetic_frames(0.1, seed=4), 640, 480, SIZE)
+    doc = result.to_map_document(survey_job_id="job-1")
+    assert doc["frame"] == "survey" and doc["units"] == "m" and doc["survey_job_id"] == "job-1"
+    assert set(doc["camera"]) == {"width", "height", "K", "dist"}
+    assert Camera.from_dict(doc["camera"]) == result.camera
+    ids = [t["id"] for t in doc["targets"]]
+    assert ids == sorted(ids) and len(ids) == len(result.targets)
+    for t in doc["targets"]:
+        assert np.asarray(t["discs"]).shape == (4, 3)
+        assert len(t["std_m"]) == 4 and all(s > 0 for s in t["std_m"])
+        assert t["n_views"] >= 2
+    assert doc["rms_px"] == pytest.approx(result.rms_px, abs=1e-4)
+    import json
+
+    json.dumps(doc)  # plain JSON types only
+
+
+def test_survey_refuses_what_cannot_be_surveyed() -> None:
+    with pytest.raises(SurveyError, match="no targets"):
+        survey([[] for _ in range(10)], 640, 480, SIZE)
+    with pytest.raises(SurveyError, match="at least 2 frames"):
+        survey([[]], 640, 480, SIZE)
+    one = _synthetic_frames(0.1)[10]
+    assert one
+    with pytest.raises(SurveyError, match="fewer than 2 frames"):
+        survey([one] + [[] for _ in range(5)], 640, 480, SIZE)
+    with pytest.raises(SurveyError, match="marker_size_m"):
+        survey(_synthetic_frames(0.1), 640, 480, 0.0)
+
+
+def test_focal_from_cards() -> None:
+    rng = np.random.default_rng(5)
+    camera = Camera.pinhole(750.0, 640, 480)
+    from app.core.markers import DISC_CENTRES
+
+    model = np.c_[DISC_CENTRES * SIZE, np.zeros(4)]
+    quads = []
+    for _ in range(40):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        R, _ = cv2.Rodrigues(axis * np.radians(rng.uniform(20, 60)))
+        pose = Pose(R, np.r_[rng.uniform(-0.5, 0.5, 2), rng.uniform(1.0, 2.5)] - R @ model.mean(axis=0))
+        quads.append(camera.project_map(model, pose) + rng.normal(0, 0.1, (4, 2)))
+    f = focal_from_cards(quads, 640, 480)
+    assert f is not None and abs(f / 750.0 - 1) < 0.03
+    # Head-on cards carry no information about f.
+    flat = [camera.project_map(model, Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))) for _ in range(10)]
+    assert focal_from_cards(flat, 640, 480) is None
+
+
+# --- rendered frames, the real detector --------------------------------------------------
+
+
+def test_rendered_room_survey() -> None:
+    from app.core.candidates import load_default_classifier
+    from app.core.detector import Detector
+
+    rng = np.random.default_rng(11)
+    room = (4.0, 3.0, 2.5)
+    scene = room_scene(rng, size=room, n_targets=8, marker_size_m=SIZE)
+    poses = camera_walk(rng, room, 50, kind="calibration")
+    detector = Detector(classifier=load_default_classifier())
+    frames = [detector.detect(image).targets for image, _ in render_walk(scene, CAMERA, poses, rng, supersample=1)]
+    result = survey(frames, 640, 480, SIZE)
+    assert abs(result.camera.fx / CAMERA.fx - 1) < 0.01, result.camera
+    assert len(result.targets) >= 5
+    assert _disc_rms(result, scene) < 0.005
+    doc = result.to_map_document()
+    assert len(doc["targets"]) == len(result.targets)
+
+
+# --- alignment ---------------------------------------------------------------------------
+
+
+def test_umeyama_recovers_a_similarity() -> None:
+    rng = np.random.default_rng(3)
+    R, _ = cv2.Rodrigues(rng.normal(size=3))
+    truth = Similarity(2.5, R, np.array([1.0, -2.0, 0.5]))
+    src = rng.normal(size=(6, 3))
+    dst = truth.apply(src)
+    est = similarity_from_points(src, dst)
+    assert est.scale == pytest.approx(2.5, rel=1e-9)
+    np.testing.assert_allclose(est.R, R, atol=1e-9)
+    np.testing.assert_allclose(est.t, truth.t, atol=1e-9)
+    assert alignment_residuals(est, src, dst).max() < 1e-9
+    # Noise shows in the residuals; the inverse undoes the transform.
+    noisy = dst + rng.normal(0, 0.01, dst.shape)
+    assert 0.001 < alignment_residuals(similarity_from_points(src, noisy), src, noisy).mean() < 0.05
+    np.testing.assert_allclose(est.inverse().apply(dst), src, atol=1e-9)
+
+
+def test_umeyama_refuses_degenerate_input() -> None:
+    line = np.c_[np.linspace(0, 1, 5), 2 * np.linspace(0, 1, 5), np.zeros(5)]
+    with pytest.raises(ValueError, match="collinear"):
+        similarity_from_points(line, line + 1.0)
+    with pytest.raises(ValueError, match="at least 3"):
+        similarity_from_points(np.eye(3)[:2], np.eye(3)[:2])
+
+
+def test_similarity_moves_poses_with_the_map() -> None:
+    rng = np.random.default_rng(4)
+    R, _ = cv2.Rodrigues(rng.normal(size=3))
+    sim = Similarity(1.7, R, np.array([0.3, 0.1, -0.2]))
+    camera = Camera.pinhole(700.0, 640, 480)
+    pose = Pose.look_at([0.0, 0.0, 0.0], [0.0, 3.0, 0.2])
+    X = rng.uniform(-1, 1, (10, 3)) + np.array([0.0, 3.0, 0.0])
+    np.testing.assert_allclose(camera.project_map(sim.apply(X), sim.apply_pose(pose)),
+                               camera.project_map(X, pose), atol=1e-9)
+    np.testing.assert_allclose(sim.apply_pose(pose).position, sim.apply(pose.position)[0], atol=1e-12)
+
+
+def test_target_origin_alignment() -> None:
+    scene, _ = _room()
+    target = scene.targets[3]
+    sim = target_origin_alignment(target.discs)
+    moved = sim.apply(target.discs)
+    np.testing.assert_allclose(moved[:, 2], 0.0, atol=1e-3)  # the card bends by a few mm at most
+    np.testing.assert_allclose(moved.mean(axis=0)[:2], 0.0, atol=1e-9)
+    x = moved[1] - moved[0]
+    assert x[0] > 0 and abs(x[1]) < 1e-3
+    assert moved[0, 1] > moved[3, 1]  # disc 0 (top) above disc 3 (bottom): y up the card
+    # z points out of the printed face, i.e. into the room, towards a viewer.
+    assert (sim.R @ target.normal)[2] == pytest.approx(1.0, abs=1e-6)
+    assert sim.scale == 1.0
+    doc = sim.apply_map_document(scene.map_document(CAMERA))
+    assert doc["frame"] == "world"
+    np.testing.assert_allclose(np.asarray(doc["targets"][3]["discs"])[:, 2], 0.0, atol=1e-3)
