@@ -167,3 +167,15 @@ def test_cli_writes_frames_and_room_walks(tmp_path: Path) -> None:
 
     assert cli([*args, "--format", "jpeg", "--out", str(tmp_path / "j")]) == 0
     assert len(list((tmp_path / "j" / "tracking").glob("*.jpg"))) == 6
+
+
+def test_room_cards_lie_wholly_in_front_of_their_walls() -> None:
+    """A card bent into its wall would have a panel hidden by the wall while its truth
+    still called every disc visible."""
+    scene = scenes.room_scene(np.random.default_rng(11), (5.0, 4.0, 2.6), n_targets=24, marker_size_m=0.25)
+    walls = scenes.room_walls((5.0, 4.0, 2.6))[:4]
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21)), -1).reshape(-1, 2)
+    for target in scene.targets:
+        wall = min(walls, key=lambda w: abs(np.dot(target.corners[0] - w.centre, w.inward)))
+        height = (target.point(grid) - wall.centre) @ wall.inward
+        assert height.min() > 0.001, (target.id, height.min())

@@ -277,6 +277,8 @@ def room_scene(
         margin = marker_size_m
         a = rng.uniform(-wall.width / 2 + margin, wall.width / 2 - margin)
         height = rng.uniform(0.7, min(wall.height - 0.3, 2.3))
+        # 2 mm off the wall; the bend lifts the middle further out (a card stuck on a wall
+        # cannot bend into it, and a panel behind the wall would vanish).
         centre = wall.centre + right * a + wall.up * (height - wall.height / 2) + wall.inward * 0.002
         if any(np.linalg.norm(centre - (t.point(np.array([[0.5, 0.5]]))[0])) < 1.6 * marker_size_m for t in targets):
             continue
@@ -287,7 +289,7 @@ def room_scene(
         targets.append(
             PlacedTarget(
                 id=len(targets), family=family, size_m=marker_size_m, origin=origin,
-                x_axis=x_axis, y_axis=y_axis, bend_m=float(rng.uniform(-max_bend_m, max_bend_m)),
+                x_axis=x_axis, y_axis=y_axis, bend_m=float(rng.uniform(0.0, max_bend_m)),
             )
         )
     return Scene(background=background, targets=targets, room_size=size)
