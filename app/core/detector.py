@@ -38,11 +38,10 @@ class Detector:
         start = time.perf_counter()
         candidates = find_candidates(gray, self.classifier)
         found = time.perf_counter()
-        targets = assemble_targets(gray, candidates, self.family)
+        stages: dict[str, float] = {}
+        targets = assemble_targets(gray, candidates, self.family, timing=stages)
         done = time.perf_counter()
-        return Detection(
-            targets=targets,
-            candidates=candidates,
-            timing_ms={"candidates": (found - start) * 1e3, "targets": (done - found) * 1e3,
-                       "detect": (done - start) * 1e3},
-        )
+        timing = {"candidates": (found - start) * 1e3, "targets": (done - found) * 1e3}
+        timing.update({f"targets.{k}": v for k, v in stages.items()})  # group, verify, refine, identify
+        timing["detect"] = (done - start) * 1e3
+        return Detection(targets=targets, candidates=candidates, timing_ms=timing)

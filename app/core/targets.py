@@ -5,11 +5,12 @@ Pipeline of `assemble_targets`:
 
 1. Grouping (`group_candidates`). The paper relies on the Delaunay triangulation of the
    candidates holding each true target as two adjacent triangles. Our own code cells
-   (and clutter next to a card) are candidates too and break that, so 4-tuples are
-   proposed from Delaunay *neighbourhoods* instead: every candidate is an apex, two of
-   its neighbours or neighbours-of-neighbours are the adjacent discs, and the fourth
-   disc is looked up near the parallelogram prediction. Cheap vectorised geometry
-   (convex, similar radii, disc size vs quadrilateral size, angles) prunes them.
+   (and clutter next to a card) are candidates too and break that, so each candidate's
+   nearest radius-compatible neighbours (a k-d tree) are used instead: every candidate
+   is an apex, two of its listed neighbours are the adjacent discs, and the fourth disc
+   is looked up near the parallelogram prediction among their own lists. Cheap
+   vectorised geometry (convex, similar radii, disc size vs quadrilateral size, angles)
+   prunes the proposals.
 2. Verification (`_measure`). The homography from the card layout to the four points
    is used to sample a fixed set of card points (discs, the white card around and
    between them, the white gap around the code, the code cells) from a pyramid level
@@ -21,8 +22,11 @@ Pipeline of `assemble_targets`:
    homography of the four discs), minus the perspective bias of the ellipse centroid
    (exact, from the image conic of the disc), iterated.
 4. Identification (`identify`, `decode_cells`): the code is read through the refined
-   homography, normalised by the card's own black (discs) and white levels and matched
-   against every code of the family in all four rotations; ambiguous reads are refused.
+   homography, normalised by the card's own black (discs) and white levels and fitted
+   by every code of the family in all four rotations, each as it reads through a few
+   amounts of blur (a far card's 2 px cells are never read as clean black and white);
+   a read whose best fit is poor, or that another code or rotation fits nearly as well,
+   is refused.
 
 Coordinates: full-resolution pixels, centre of the top-left pixel at (0, 0). Disc order
 of the output follows DESIGN.md: 0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left
@@ -41,7 +45,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, DISC_CENTRES, DISC_RADIUS, get_family
 
@@ -88,13 +92,6 @@ EDGE_OVER_RADIUS = (2.2, 10.0)
 #: sqrt(quadrilateral area) / mean candidate radius: 4.8 whatever the affine view (area
 #: ratios are affine invariant), within the radius error and perspective.
 SQRT_AREA_OVER_RADIUS = (3.3, 7.0)
-#: A candidate more than RADIUS_RATIO_MAX times smaller than a neighbour within this many
-#: of the neighbour's radii lies on the neighbour's card (the farthest code cell is 3.4
-#: disc radii from the nearest disc).
-DOMINANCE_REACH = 4.0
-#: Code cells are found as candidates of their own only on cards whose discs are at
-#: least this big (pixels); those cards get a second triangulation without them.
-BIG_DISC_RADIUS = 4.5
 #: sqrt(|cross product|) of the two sides at an apex over the apex's radius: the same
 #: 4.8 nominal, looser (one radius, and perspective skews the parallelogram).
 APEX_AREA_OVER_RADIUS = (2.2, 9.0)
@@ -228,55 +225,6 @@ def _clean(candidates: np.ndarray) -> np.ndarray:
     return np.sort(idx[first])
 
 
-def _unique(keys: np.ndarray) -> np.ndarray:
-    """Sorted distinct values (np.unique is several times slower on numpy 2.4)."""
-    s = np.sort(keys)
-    return s[np.concatenate(([True], s[1:] != s[:-1]))] if s.size else s
-
-
-def _ragged_pairs(src: np.ndarray, n: int, ordered: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (e1, e2), e1 != e2, of edges sharing their source, for edges sorted by
-    `src`: all ordered pairs, or only e1 < e2."""
-    counts = np.bincount(src, minlength=n)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    if ordered:
-        per_edge = counts[src]
-        base = starts[src]
-    else:
-        # edge e pairs with the edges after it in its group
-        per_edge = starts[src] + counts[src] - np.arange(src.size) - 1
-        base = np.arange(src.size) + 1
-    total = int(per_edge.sum())
-    if total == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    e1 = np.repeat(np.arange(src.size), per_edge)
-    offs = np.arange(total) - np.repeat(np.cumsum(per_edge) - per_edge, per_edge)
-    e2 = base[e1] + offs
-    if not ordered:
-        return e1, e2
-    keep = e1 != e2
-    return e1[keep], e2[keep]
-
-
-def _neighbourhood(pts: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Pairs (a, b) of Delaunay neighbours and neighbours-of-neighbours among the points
-    ``pts[ids]``, as indices into `pts`, each unordered pair at least once (in either
-    order; duplicates and a == b possible); None when the points cannot be triangulated
-    (fewer than 3, all collinear)."""
-    if ids.size < 3:
-        return None
-    try:
-        tri = Delaunay(pts[ids])
-    except (QhullError, ValueError):
-        return None
-    indptr, nbrs = tri.vertex_neighbor_vertices
-    src = np.repeat(np.arange(ids.size), np.diff(indptr))  # sorted: CSR order
-    e1, e2 = _ragged_pairs(src, ids.size, ordered=False)  # two neighbours of one middle
-    a = np.concatenate([src, nbrs[e1]])
-    b = np.concatenate([nbrs, nbrs[e2]])
-    return ids[a], ids[b]
-
-
 def _quad_geometry_ok(p: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Cheap geometric checks of disc quadrilaterals p (P, 4, 2) with candidate radii
     r (P, 4), vertices in the layout's orientation: bool (P,). Squared quantities
@@ -310,17 +258,6 @@ def _quad_geometry_ok(p: np.ndarray, r: np.ndarray) -> np.ndarray:
     return ok
 
 
-def _edge_keys(a: np.ndarray, b: np.ndarray, length: np.ndarray, rad: np.ndarray, n: int) -> np.ndarray:
-    """Keys a * n + b, both directions, of the pairs that could be two discs of one
-    card: not a loop, similar radii, length consistent with them."""
-    ra, rb = rad[a], rad[b]
-    rsum = ra + rb
-    keep = (a != b) & (ra <= RADIUS_RATIO_MAX * rb) & (rb <= RADIUS_RATIO_MAX * ra)
-    keep &= (length >= 0.5 * EDGE_OVER_RADIUS[0] * rsum) & (length <= 0.5 * EDGE_OVER_RADIUS[1] * rsum)
-    a, b = a[keep], b[keep]
-    return np.concatenate([a * n + b, b * n + a])
-
-
 #: Grouping by nearest neighbours: each candidate looks at its `KNN_QUERY` nearest
 #: candidates (a big card's code cells and specks come first, up to ~30 of them) and keeps
 #: the first `KNN_KEEP` that could be a disc of the same card (similar radius, distance
@@ -329,7 +266,7 @@ def _edge_keys(a: np.ndarray, b: np.ndarray, length: np.ndarray, rad: np.ndarray
 KNN_QUERY = 32
 #: First, short query; asked again with KNN_QUERY when fewer than KNN_AGAIN_BELOW compatible
 #: neighbours were found and the short list ends within KNN_AGAIN_REACH radii.
-KNN_FIRST = 8
+KNN_FIRST = 12
 KNN_AGAIN_BELOW = 4
 KNN_AGAIN_REACH = 8.0
 KNN_KEEP = 8
@@ -377,11 +314,15 @@ def group_candidates(candidates: np.ndarray) -> np.ndarray:
         rs = 0.5 * (ri + rj)
         ok = (rj <= RADIUS_RATIO_MAX * ri) & (ri <= RADIUS_RATIO_MAX * rj)
         ok &= (dist >= EDGE_OVER_RADIUS[0] * rs) & (dist <= EDGE_OVER_RADIUS[1] * rs)
-        # first KNN_KEEP compatible neighbours of each candidate, padded with -1
-        rank = np.cumsum(ok, axis=1) - 1
-        keep = ok & (rank < KNN_KEEP)
-        rows, cols = np.nonzero(keep)
-        lists[todo[rows], rank[rows, cols]] = nb[rows, cols]
+        # the KNN_KEEP compatible neighbours that look most like an adjacent disc (side
+        # 4.8 radii, same radius) of each candidate, padded with -1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bad = np.abs(np.log(dist / (4.8 * rs))) + 0.5 * np.abs(np.log(rj / ri))
+        order = np.argsort(np.where(ok, bad, np.inf), axis=1, kind="stable")[:, :KNN_KEEP]
+        sel_ok = np.take_along_axis(ok, order, axis=1)
+        keep = ok & (np.cumsum(ok, axis=1) <= KNN_KEEP)  # only the count matters below
+        rows, cols = np.nonzero(sel_ok)
+        lists[todo[rows], cols] = nb[rows, order[rows, cols]]
         if k_query >= n:
             break
         again = (keep.sum(axis=1) < KNN_AGAIN_BELOW) & (dist[:, -1] < KNN_AGAIN_REACH * rad[todo])
@@ -424,11 +365,12 @@ def group_candidates(candidates: np.ndarray) -> np.ndarray:
     d2 = ex * ex + ey * ey
     good = (k4 >= 0) & (k4 != i[:, None]) & (d2 <= FOURTH_TOLERANCE**2 * short2[:, None])
     d2 = np.where(good, d2, np.inf)
-    first = np.argmin(d2, axis=1)
-    rows_ = np.arange(i.size)
-    has = good[rows_, first]
-    k = k4c[rows_, first]
-    quads = np.stack([i, j, k, l_], axis=1)[has]
+    # the two nearest to the prediction (a card corner or code cell may come first)
+    best = np.argpartition(d2, 1, axis=1)[:, :2]
+    k = np.take_along_axis(k4c, best, axis=1)
+    has = np.isfinite(np.take_along_axis(d2, best, axis=1))
+    quads = np.stack([np.repeat(i[:, None], 2, 1), np.repeat(j[:, None], 2, 1), k,
+                      np.repeat(l_[:, None], 2, 1)], axis=2)[has]
     if quads.shape[0] == 0:
         return empty
     # one copy of each cycle: rotate its smallest index to the front

@@ -1,0 +1,233 @@
+"""Targets from disc candidates (app.core.targets): grouping, verification, subpixel
+centres, identification and degenerate input, each on small simulator renders with
+simulated candidates. Fast (a few seconds)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core import scenes
+from app.core import targets as tg
+from app.core.markers import DEFAULT_FAMILY, get_family, marker_layout, render_card
+from bench.peers import truth_cards
+
+
+def _frames(name: str, n: int, seed: int) -> list[tuple[np.ndarray, scenes.FrameTruth]]:
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        try:
+            image, truth = scenes.scenario_frame(name, rng)
+        except ValueError:  # the simulator could not place the cards: draw again
+            continue
+        if any(t.visible for t in truth.targets):
+            out.append((image, truth))
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean_frames() -> list[tuple[np.ndarray, scenes.FrameTruth]]:
+    return _frames("clean", 6, seed=11)
+
+
+@pytest.fixture(scope="module")
+def default_frames() -> list[tuple[np.ndarray, scenes.FrameTruth]]:
+    return _frames("default", 6, seed=12)
+
+
+def test_grouping_finds_the_true_quadrilateral_among_clutter(default_frames: list) -> None:
+    rng = np.random.default_rng(0)
+    n_cards = 0
+    for image, truth in default_frames:
+        cand = tg.simulate_candidates(image, truth.targets, rng, n_random=60, n_texture=40)
+        quads = tg.group_candidates(cand)
+        assert quads.ndim == 2 and quads.shape[1] == 4
+        for t in truth.targets:
+            if not t.visible:
+                continue
+            n_cards += 1
+            # some proposal has a candidate on each disc, in the layout's cyclic order
+            d = np.hypot(*(cand[quads, None, :2] - t.discs_px[None, None]).transpose(3, 0, 1, 2))  # (P, 4, 4)
+            on = d <= 1.5  # jitter is 1 px
+            hit = any(
+                all(on[p, k, (k + s) % 4] for k in range(4)) for p in range(len(quads)) for s in range(4)
+            )
+            assert hit, f"card {t.id} not proposed"
+        # proposals stay few: clutter must not explode the 4-cycles
+        assert quads.shape[0] <= 20 * len(cand)
+    assert n_cards >= 6
+
+
+def test_grouping_orientation_is_the_layouts(clean_frames: list) -> None:
+    rng = np.random.default_rng(1)
+    image, truth = clean_frames[0]
+    cand = tg.simulate_candidates(image, truth.targets, rng, n_random=0, n_texture=0, jitter_px=0.0)
+    for q in tg.group_candidates(cand):
+        p = cand[q, :2].astype(np.float64)
+        a, b = p[1] - p[0], p[3] - p[0]
+        cross = a[0] * b[1] - a[1] * b[0]
+        assert cross > 0  # clockwise on screen (y down), as discs 0-1-2-3 printed
+
+
+def test_detects_every_visible_card_with_simulated_candidates(default_frames: list) -> None:
+    rng = np.random.default_rng(2)
+    n = 0
+    for image, truth in default_frames:
+        cand = tg.simulate_candidates(image, truth.targets, rng)
+        found = {t.id: t for t in tg.assemble_targets(image, cand)}
+        ids = {t.id for t in truth.targets}
+        assert set(found) <= ids  # no false targets, no wrong ids
+        for t, card in zip(truth.targets, truth_cards(truth, None), strict=True):
+            # (a card partly covered by a nearer one is not counted)
+            if card.counted and t.disc_diameter_px >= 6:
+                n += 1
+                assert t.id in found, f"card {t.id} (discs {t.disc_diameter_px:.1f} px) missed"
+                assert np.abs(found[t.id].discs - t.discs_px).max() < 1.0
+    assert n >= 5
+
+
+def test_verification_rejects_quadrilaterals_of_non_discs(clean_frames: list) -> None:
+    rng = np.random.default_rng(3)
+    for image, truth in clean_frames:
+        # the true quadrilateral moved off its card onto the background and other places
+        t = next(t for t in truth.targets if t.visible)
+        side = float(np.linalg.norm(t.discs_px[1] - t.discs_px[0]))
+        quads = []
+        for _ in range(20):
+            shift = rng.uniform(-3, 3, 2) * side
+            q = t.discs_px + shift
+            if (q.min(axis=0) > 0).all() and (q[:, 0].max() < image.shape[1]) and (q[:, 1].max() < image.shape[0]):
+                centre = q.mean(axis=0)
+                if np.linalg.norm(centre - t.discs_px.mean(axis=0)) > 1.5 * side:
+                    quads.append(q)
+        if not quads:
+            continue
+        hs = tg.homographies(np.array(quads))
+        m = tg._measure(tg._Pyramid(image), hs, get_family(DEFAULT_FAMILY).cells)
+        assert not m.passed().any()
+        # and as candidates, nothing comes out
+        r = 0.125 / 0.6 * side
+        cand = np.array([[u, v, r, 1.0] for q in quads[:1] for u, v in q])
+        assert tg.assemble_targets(image, cand) == []
+
+
+def test_verification_rejects_four_dark_squares() -> None:
+    # Four black squares where discs should be, on a white card: no disc pattern.
+    img = np.full((200, 200), 220, np.uint8)
+    centres = np.array([[60, 60], [140, 60], [140, 140], [60, 140]], np.float64)
+    for x, y in centres.astype(int):
+        img[y - 17 : y + 18, x - 17 : x + 18] = 20
+    cand = np.column_stack([centres, np.full(4, 16.0), np.ones(4)])
+    assert tg.assemble_targets(img, cand) == []
+
+
+def test_subpixel_centres_on_clean_frames(clean_frames: list) -> None:
+    rng = np.random.default_rng(4)
+    errs = []
+    for image, truth in clean_frames:
+        for t in truth.targets:
+            if not t.visible or t.disc_diameter_px < 8:
+                continue
+            start = t.discs_px + rng.uniform(-1.0, 1.0, (4, 2))
+            start = np.roll(start, int(rng.integers(4)), axis=0)  # any starting disc
+            refined, radii = tg.refine_centres(image, start[None])
+            truth_rolled = np.roll(t.discs_px, 0, axis=0)
+            # match each refined centre to its true disc
+            d = np.hypot(*(refined[0][:, None, :] - truth_rolled[None]).transpose(2, 0, 1))
+            errs.extend(d.min(axis=1).tolist())
+            assert np.allclose(radii[0], t.disc_diameter_px / 2, rtol=0.15)
+    errs = np.array(errs)
+    assert errs.size >= 16
+    rms = float(np.sqrt(np.mean(errs**2)))
+    # measured ~0.003 px on this simulator; the issue's bound is 0.1 px
+    assert rms <= 0.05, f"disc centre RMS {rms:.3f} px"
+
+
+def test_identification_in_every_rotation_gives_the_design_order(clean_frames: list) -> None:
+    n = 0
+    for image, truth in clean_frames:
+        for t in truth.targets:
+            if not t.visible:
+                continue
+            for s in range(4):  # the quadrilateral may start at any disc
+                got = tg.identify(image, np.roll(t.discs_px, s, axis=0))
+                assert got is not None
+                tid, discs, match = got
+                assert tid == t.id
+                assert np.allclose(discs, t.discs_px)  # DESIGN.md order: 0 TL, 1 TR, 2 BR, 3 BL
+                assert match.gap >= tg.CODE_GAP_MIN
+                n += 1
+    assert n >= 16
+
+
+def test_identification_of_rotated_cards() -> None:
+    # A printed card rolled by 0, 90, 180 and 270 degrees in the image (fronto-parallel):
+    # the id and the printed disc order come out whatever the roll.
+    fam = get_family(DEFAULT_FAMILY)
+    for marker_id in (0, 7, len(fam) - 1):
+        card = render_card(marker_layout(DEFAULT_FAMILY, marker_id), 240)
+        canvas = np.full((320, 320), 128, np.uint8)
+        canvas[40:280, 40:280] = card
+        # printed disc centres (DESIGN order) in canvas pixels (pixel centres at integers)
+        base = 40 + np.array([[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]]) * 240 - 0.5
+        for k in range(4):
+            img = np.ascontiguousarray(np.rot90(canvas, k))  # counter-clockwise by 90 k
+            pts = base.copy()
+            for _ in range(k):  # where np.rot90 moves pixel (x, y): (y, 319 - x)
+                pts = np.stack([pts[:, 1], 319 - pts[:, 0]], axis=1)
+            for s in range(4):
+                got = tg.identify(img, np.roll(pts, s, axis=0))
+                assert got is not None, f"id {marker_id} rotated {90 * k}"
+                tid, discs, _ = got
+                assert tid == marker_id
+                assert np.allclose(discs, pts, atol=1e-6)
+
+
+def test_ambiguous_or_unreadable_codes_are_refused() -> None:
+    tmpl, ids, shifts = tg._templates(DEFAULT_FAMILY)
+    # a clean code is read, with its id and rotation
+    for row in (0, 5, len(tmpl) - 1):
+        m = tg.decode_cells(tmpl[row])
+        assert m is not None and m.id == ids[row] and m.shift == shifts[row]
+    # every cell grey: unreadable
+    assert tg.decode_cells(np.full(9, 0.5)) is None
+    # halfway between two codes (or rotations) at the family's distance: ambiguous
+    dist = (tmpl[:, None, :] != tmpl[None, :, :]).sum(axis=2)
+    np.fill_diagonal(dist, 99)
+    a, b = np.unravel_index(np.argmin(dist), dist.shape)
+    assert tg.decode_cells(0.5 * (tmpl[a] + tmpl[b])) is None
+    # noise far beyond any blur: refused
+    rng = np.random.default_rng(5)
+    refused = sum(tg.decode_cells(rng.uniform(-0.5, 1.5, 9)) is None for _ in range(200))
+    assert refused >= 190
+
+
+@pytest.mark.parametrize(
+    "cand",
+    [
+        np.zeros((0, 4)),
+        np.array([[10.0, 10.0, 3.0, 1.0]]),
+        np.array([[10.0, 10.0, 3.0, 1.0], [30.0, 10.0, 3.0, 1.0], [30.0, 30.0, 3.0, 1.0]]),
+        np.array([[10.0 * k, 50.0, 3.0, 1.0] for k in range(1, 9)]),  # collinear
+        np.array([[np.nan, 10.0, 3.0, 1.0], [30.0, np.nan, 3.0, 1.0], [30.0, 30.0, np.inf, 1.0],
+                  [10.0, 30.0, 3.0, np.nan]]),
+        np.full((6, 4), np.nan),
+        np.array([[20.0, 20.0, 3.0, 1.0]] * 6),  # all on one spot
+        np.zeros((5, 2)),  # no radius column
+    ],
+)
+def test_degenerate_input_gives_nothing(cand: np.ndarray) -> None:
+    img = np.full((100, 100), 200, np.uint8)
+    assert tg.assemble_targets(img, cand) == []
+    assert tg.group_candidates(cand).shape == (0, 4) or cand.shape[1] < 3
+
+
+def test_timing_and_counts(default_frames: list) -> None:
+    image, truth = default_frames[0]
+    cand = tg.simulate_candidates(image, truth.targets, np.random.default_rng(6))
+    timing: dict[str, float] = {}
+    counts: dict[str, int] = {}
+    out = tg.assemble_targets(image, cand, timing=timing, counts=counts)
+    assert set(timing) == {"group", "verify", "refine", "identify"}
+    assert counts["proposals"] >= counts["quick"] >= counts["verified"] >= counts["identified"] == len(out)
