@@ -117,6 +117,38 @@ def _synth_room(args: argparse.Namespace) -> int:
     return 0
 
 
+def _keys(args: argparse.Namespace) -> int:
+    from app.db import make_engine, make_sessionmaker, upgrade_to_head
+    from app.services import keys
+    from app.services.errors import ServiceError
+    from app.settings import Settings
+
+    settings = Settings()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
+    try:
+        upgrade_to_head(engine, settings.data_dir)
+        with make_sessionmaker(engine)() as session:
+            if args.action == "create":
+                created = keys.create(session, args.name, [s.strip() for s in args.scopes.split(",") if s.strip()])
+                print(f"id {created.id}  name {created.name!r}  scopes {','.join(created.scopes)}", file=sys.stderr)
+                print("the key (shown only now; only its hash is stored):", file=sys.stderr)
+                print(created.key)
+            elif args.action == "list":
+                for row in keys.list_all(session):
+                    state = f"revoked {row.revoked_at:%Y-%m-%d}" if row.revoked_at else "active"
+                    print(f"{row.id}\t{row.name}\t{','.join(row.scopes)}\tft_{row.prefix}_...\t{state}")
+            else:
+                keys.revoke(session, args.id)
+                print(f"revoked key {args.id}", file=sys.stderr)
+    except ServiceError as exc:
+        print(f"fidotrack keys: {exc.detail}", file=sys.stderr)
+        return 2
+    finally:
+        engine.dispose()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fidotrack", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -134,6 +166,16 @@ def build_parser() -> argparse.ArgumentParser:
     cards.add_argument("-o", "--output", type=Path, default=Path("markers.pdf"))
     cards.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     cards.set_defaults(run=_markers)
+
+    api_keys = commands.add_parser("keys", help="manage API keys (used when FIDOTRACK_API_KEYS=true)")
+    key_actions = api_keys.add_subparsers(dest="action", required=True)
+    create = key_actions.add_parser("create", help="create a key and print it (once)")
+    create.add_argument("--name", required=True)
+    create.add_argument("--scopes", default="read,track", help="comma list of read, track, admin")
+    key_actions.add_parser("list", help="list keys (never the secrets)")
+    revoke = key_actions.add_parser("revoke", help="revoke a key by id")
+    revoke.add_argument("id", type=int)
+    api_keys.set_defaults(run=_keys)
 
     synth = commands.add_parser("synth", help="render simulated frames with ground truth")
     kinds = synth.add_subparsers(dest="kind", required=True)

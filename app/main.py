@@ -6,19 +6,20 @@
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
-from fastapi import FastAPI, Request, Response
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from app import __version__
+from app import __version__, logs
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
+from app.deps import authorize
+from app.middleware import BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
-from app.routers import detect, environments, health, jobs, markers, surveys, track
+from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
@@ -33,6 +34,7 @@ log = logging.getLogger("app")
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    logs.configure(settings.log_format, settings.log_level)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
@@ -63,8 +65,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Marker-based camera tracking: learned fiducial detection, automatic survey, "
         "per-frame pose (Claus & Fitzgibbon, WACV 2005).",
         lifespan=lifespan,
+        # Every route passes the API-key gate (a no-op unless settings.api_keys).
+        dependencies=[Depends(authorize)],
     )
-    app.state.settings = settings or Settings()
+    settings = settings or Settings()
+    app.state.settings = settings
     app.state.metrics = Metrics()
 
     @app.exception_handler(ServiceError)
@@ -76,18 +81,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Which field and why; the offending input is not echoed (it may be huge, or a
         # NaN that JSON cannot carry).
         errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-        return JSONResponse({"detail": errors}, status_code=422)
+        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
+        return JSONResponse({"detail": detail, "errors": errors}, status_code=422)
 
-    @app.middleware("http")
-    async def _observe(request: Request, call_next: Callable[[Request], Awaitable[Response]]) -> Response:
-        started = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        template = getattr(route, "path", "unmatched")
-        app.state.metrics.observe_request(
-            request.method, template, response.status_code, time.perf_counter() - started
-        )
-        return response
+    app.add_middleware(RequestObserver, metrics=app.state.metrics)
+    # Outermost: a body over the limit is refused before any of it is read.
+    app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes,
+                       body_limit=settings.max_image_bytes + 1024 * 1024)
 
     app.include_router(health.router)
     app.include_router(environments.router)
@@ -97,6 +97,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(classifiers_router.router)
     app.include_router(jobs.router)
     app.include_router(track.router)
+    app.include_router(keys.router)
     return app
 
 

@@ -282,3 +282,28 @@ class Readiness(BaseModel):
     database: str
     schema_revision: list[str]
     head_revision: list[str]
+
+
+# --- API keys -----------------------------------------------------------------------
+
+
+class ApiKeyCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    scopes: list[Literal["read", "track", "admin"]] = Field(min_length=1, max_length=3)
+
+
+class ApiKeyOut(BaseModel):
+    id: int
+    name: str
+    scopes: list[str]
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class ApiKeyCreated(BaseModel):
+    id: int
+    name: str
+    scopes: list[str]
+    key: str = Field(description="The secret: shown once, only its hash is stored.")

@@ -21,6 +21,10 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=1, le=65535)
     sqlite_busy_timeout_ms: int = Field(5000, ge=0)
 
+    api_keys: bool = Field(False, description="Require API keys (create them with `fidotrack keys create`).")
+    log_format: str = Field("json", pattern="^(json|text)$", description="Log lines as JSON objects or text.")
+    log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
+
     # Limits on what clients send.
     max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Largest survey upload.")
     max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description="Largest single image or frame.")
@@ -31,6 +35,9 @@ class Settings(BaseSettings):
     max_video_pixels: int = Field(3840 * 2160, ge=64 * 64, description="Largest survey video frame (width*height).")
     max_survey_images: int = Field(2000, ge=1, description="Most images in one survey upload.")
     survey_frames: int = Field(400, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
+    max_track_fps: float = Field(120.0, gt=0, description="Frames per second one /track client may send.")
+    max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
+    max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
     max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
 

@@ -62,9 +62,11 @@ def test_unknown_environment_is_404_with_message(client: TestClient, method: str
 def test_malformed_environment_is_422_naming_the_field(client: TestClient, body: dict, field: str) -> None:
     reply = client.post("/environments", json=body)
     assert reply.status_code == 422
-    errors = reply.json()["detail"]
+    body = reply.json()
+    errors = body["errors"]
     assert any(field in error["loc"] for error in errors), errors
     assert all(error["msg"] for error in errors)
+    assert field in body["detail"]  # one readable string, like every other error
     assert client.get("/environments").json() == []
 
 

@@ -18,9 +18,10 @@ The pipeline:
    (robust over targets, `pose.nonlinear`), new targets are triangulated from every
    registered view (DLT, trimmed) or, while their baseline is still narrow, placed by
    their planar pose; a bundle adjustment now and then keeps the growth honest;
-4. bundle adjustment over f, principal point, k1, k2, every pose and every disc, robust
-   loss, sparse analytic Jacobian; views that still do not fit (a misidentified target,
-   a broken track) are removed and it is run again;
+4. bundle adjustment over f, principal point, k1, k2, every pose and every disc, Huber
+   loss, analytic Jacobian, Levenberg-Marquardt with the cameras eliminated (Schur
+   complement; see ``bundle_adjust`` for why); views that still do not fit (a
+   misidentified target, a broken track) are removed and it is run again;
 5. metric scale: the least-squares scale that gives the known disc-to-disc distances of
    every card (sides 0.6 s, diagonals 0.6 sqrt(2) s) — optionally also as a soft prior
    inside the bundle adjustment (``card_prior_m``);
@@ -254,18 +255,21 @@ def _normalised(camera: Camera, uv: np.ndarray) -> np.ndarray:
     return np.c_[(ideal[:, 0] - camera.cx) / camera.fx, (ideal[:, 1] - camera.cy) / camera.fy]
 
 
-def _planar_pose(camera: Camera, uv: np.ndarray, model: np.ndarray) -> Pose | None:
-    """Card-to-camera pose of one card (IPPE, the better of its two solutions)."""
+def _planar_poses(camera: Camera, uv: np.ndarray, model: np.ndarray) -> list[Pose]:
+    """Both card-to-camera poses of one card (IPPE), best reprojection first: a small
+    card seen with noise cannot tell its two tilts apart, the caller decides."""
     x = _normalised(camera, uv)
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(model, x, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
     except cv2.error:
-        return None
-    if not n:
-        return None
-    best = int(np.argmin(np.asarray(errs).ravel())) if errs is not None else 0
-    pose = Pose.from_rvec_tvec(rvecs[best], tvecs[best])
-    return pose if pose.t[2] > 0 else None
+        return []
+    order = np.argsort(np.asarray(errs).ravel()) if errs is not None and len(errs) == n else range(n)
+    poses = [Pose.from_rvec_tvec(rvecs[k], tvecs[k]) for k in order]
+    return [p for p in poses if p.t[2] > 0]
+
+
+def _rotation_angle(a: Pose, b: Pose) -> float:
+    return float(np.arccos(np.clip((np.trace(a.R @ b.R.T) - 1) / 2, -1.0, 1.0)))
 
 
 def _triangulate(poses: Sequence[Pose], x: np.ndarray) -> np.ndarray:
@@ -669,15 +673,21 @@ def survey(
     views_of_target = [np.flatnonzero(view_target == t) for t in range(n_targets)]
     usable = np.ones(len(view_frame), bool)  # views not (yet) found to be wrong
     placed_by_plane = np.zeros(n_targets, bool)
+    weak = np.zeros(n_frames, bool)  # registered from a single target
 
     def place_targets() -> int:
         """Place every unplaced target seen by a registered frame."""
         registered = bundle.registered()
         added = 0
         for t in range(n_targets):
-            if np.isfinite(bundle.X[4 * t, 0]) and not placed_by_plane[t]:
+            if (np.isfinite(bundle.X[4 * t, 0]) and not placed_by_plane[t]) or pruned[t] >= 2:
                 continue
+            # Only frames whose pose rests on 2+ targets place new targets: a chain of
+            # single-card poses (each with its two-tilt ambiguity) drifts and flips.
+            # Frames registered from one card may still triangulate (2+ views, a real
+            # baseline), but never place a card from its own planar pose alone.
             views = [v for v in views_of_target[t] if registered[view_frame[v]] and usable[v]]
+            strong = [v for v in views if not weak[view_frame[v]]]
             if not views:
                 continue
             poses = [bundle.pose(view_frame[v]) for v in views]
@@ -701,16 +711,61 @@ def survey(
                         continue
             if np.isfinite(bundle.X[4 * t, 0]):
                 continue  # keep the planar placement until the baseline allows better
+            views = strong
+            if not views:
+                continue
             # Narrow baseline so far: the card's own planar pose in its largest view.
             best = max(views, key=lambda v: areas[v])
-            card = _planar_pose(bundle.camera, view_uv[best], model)
-            if card is None:
+            to_map = bundle.pose(view_frame[best]).inverse()
+            choices = [to_map.transform(c.transform(model)) for c in _planar_poses(bundle.camera, view_uv[best], model)]
+            if not choices:
                 continue
-            X = bundle.pose(view_frame[best]).inverse().transform(card.transform(model))
+            if len(views) > 1 and len(choices) > 1:
+                # The tilt that the other registered views agree with.
+                def disagreement(X: np.ndarray) -> float:
+                    return sum(float(np.abs(bundle.camera.project_map(X, bundle.pose(view_frame[v])) - view_uv[v]).max())
+                               for v in views if v != best)
+                choices.sort(key=disagreement)
+            X = choices[0]
             bundle.X[4 * t : 4 * t + 4] = X
             placed_by_plane[t] = True
             added += 1
         return added
+
+    def single_target_pose(f: int, ob: TargetObservation) -> Pose | None:
+        """A frame that sees one placed target: of the two poses that card allows,
+        the one closest in orientation to the nearest registered frame of the video
+        (a hand-held camera turns little between neighbouring frames)."""
+        registered = np.flatnonzero(bundle.registered())
+        # IPPE wants exactly coplanar points: use the card's best-fit plane (the
+        # surveyed discs are a little off it), then refine on the 3D discs.
+        centre = ob.map.mean(axis=0)
+        _, _, Vt = np.linalg.svd(ob.map - centre)
+        if np.linalg.det(Vt) < 0:
+            Vt[2] *= -1
+        planar = np.c_[((ob.map - centre) @ Vt.T)[:, :2], np.zeros(4)]
+        try:
+            _, rvecs, tvecs, _ = cv2.solvePnPGeneric(planar, ob.image, bundle.camera.K, bundle.camera.dist,
+                                                     flags=cv2.SOLVEPNP_IPPE)
+        except cv2.error:
+            return None
+        poses = []
+        for rvec, tvec in zip(rvecs, tvecs, strict=False):
+            plane_pose = Pose.from_rvec_tvec(rvec, tvec)
+            pose = Pose(plane_pose.R @ Vt, plane_pose.t - plane_pose.R @ Vt @ centre)
+            rvec, tvec = cv2.solvePnPRefineLM(ob.map, ob.image, bundle.camera.K, bundle.camera.dist,
+                                              pose.rvec.reshape(3, 1).copy(), pose.t.reshape(3, 1).copy())
+            pose = Pose.from_rvec_tvec(rvec, tvec)
+            err = np.abs(bundle.camera.project_map(ob.map, pose) - ob.image).max()
+            if (pose.transform(ob.map)[:, 2] > 0).all() and err < (2 if lens_refined else 10) * outlier_px:
+                poses.append(pose)
+        if not poses or not len(registered):
+            return None
+        nearest = registered[np.argmin(np.abs(registered - f))]
+        if abs(nearest - f) > 10 and len(poses) > 1:
+            return None  # no neighbour to decide by: wait for a better view
+        ref = bundle.pose(int(nearest))
+        return min(poses, key=lambda p: _rotation_angle(p, ref))
 
     def register_frames(min_targets: int, attempted: dict[int, int]) -> int:
         """PnP of every unregistered frame that sees ``min_targets`` placed targets."""
@@ -726,34 +781,77 @@ def survey(
             attempted[f] = count
             obs = [TargetObservation(int(view_target[v]), view_uv[v], bundle.X[4 * view_target[v] : 4 * view_target[v] + 4])
                    for v in views]
+            if count == 1:
+                pose = single_target_pose(f, obs[0])
+                if pose is not None:
+                    bundle.set_pose(f, pose)
+                    weak[f] = True
+                    added += 1
+                continue
             try:
                 est = nonlinear(obs, bundle.camera, outlier_px=max(outlier_px, 4.0))
             except (PoseUndetermined, cv2.error):
                 continue
             # The map is still coarse while it grows: accept a loose fit, BA tightens it.
-            if est.rms_px > 10 * outlier_px:
+            if est.rms_px > (2 if lens_refined else 10) * outlier_px:
                 continue
             bundle.set_pose(f, est.pose)
+            weak[f] = False
             added += 1
         return added
+
+    pruned = np.zeros(n_targets, int)
+    lens_refined = fixed  # until then the initial focal length may be ~10 % off: fit loosely
+
+    def prune(threshold: float) -> bool:
+        """Unregister frames / unplace targets whose views do not fit; True if any."""
+        removed = False
+        obs_all = np.flatnonzero(usable.repeat(4))
+        err = _errors(bundle, tracks, obs_all)
+        view_err = np.full(len(usable), np.nan)
+        ok = np.isfinite(err)
+        view_err[:] = 0.0
+        np.maximum.at(view_err, obs_all[ok] // 4, err[ok])
+        live = usable & bundle.registered()[view_frame] & bundle.placed()[view_target * 4]
+        for f in np.flatnonzero(bundle.registered()):
+            v = views_of_frame[f][live[views_of_frame[f]]]
+            if f != seed and len(v) and np.median(view_err[v]) > threshold:
+                bundle.rvec[f] = bundle.tvec[f] = np.nan
+                removed = True
+        for t in np.flatnonzero(bundle.placed()[0::4]):
+            v = views_of_target[t][live[views_of_target[t]]]
+            if len(v) and np.median(view_err[v]) > threshold and pruned[t] < 2:
+                bundle.X[4 * t : 4 * t + 4] = np.nan
+                placed_by_plane[t] = False
+                pruned[t] += 1
+                removed = True
+        return removed
 
     lap("initial")
 
     # ---- 3. incremental growth -----------------------------------------------------------
     attempted: dict[int, int] = {}
-    last_ba = 1
     place_targets()
+    passes = 0
     for min_targets in (2, 1):
-        while True:
+        while passes < 100:  # a bound: pruning and re-registering must not cycle forever
+            passes += 1
             added = register_frames(min_targets, attempted)
             placed = place_targets()
             n_reg = int(bundle.registered().sum())
             report("register", 0.05 + 0.45 * n_reg / n_frames)
-            if n_reg >= max(4, 1.5 * last_ba):
-                # Keep the growing map consistent; the intrinsics move once enough frames.
-                bundle, _ = bundle_adjust(bundle, tracks, usable.repeat(4), free_intrinsics=not fixed and n_reg >= 8,
-                                          max_iterations=15)
-                last_ba = n_reg
+            if (added or placed) and n_reg >= 3:
+                # Keep the growing map consistent (the intrinsics move once there are
+                # enough frames), then take back what still does not fit: a frame or a
+                # target placed from a weak view is placed again later from better ones.
+                lens_free = not fixed and n_reg >= 15
+                bundle, _ = bundle_adjust(bundle, tracks, usable.repeat(4), free_intrinsics=lens_free,
+                                          max_iterations=10)
+                # Before the lens is refined the initial focal length may be ~10 % off:
+                # do not judge views by their fit yet.
+                lens_refined = lens_refined or lens_free
+                if lens_refined and prune(2 * outlier_px):
+                    attempted.clear()  # the map changed: frames refused before may fit now
             if added == 0 and placed == 0:
                 break
     lap("register")
@@ -768,6 +866,12 @@ def survey(
     n_rejected = 0
     info: dict[str, Any] = {}
     clean = False
+    if not fixed and bundle.registered().sum() < 10:
+        # Five lens parameters from a handful of frames: not determined. Keep the
+        # initial estimate rather than fit noise.
+        fixed = True
+        warnings.append("too few frames could be registered to calibrate the lens: the initial focal length "
+                        "estimate was kept and no distortion was fitted")
     for round_ in range(4):
         report("bundle", 0.5 + 0.1 * round_)
         bundle, info = bundle_adjust(bundle, tracks, usable.repeat(4), free_intrinsics=not fixed,
@@ -844,10 +948,13 @@ def survey(
         if registered[fi]:
             trajectory[index] = bundle.pose(fi)
     lap("covariance")
+    if not np.isfinite(rms) or rms > 2 * outlier_px:
+        raise SurveyError(f"the survey did not converge (reprojection RMS {rms:.1f} px): the video does not "
+                          "show the targets from enough viewpoints, or many targets are misidentified")
     report("done", 1.0)
     return SurveyResult(
         camera=bundle.camera, targets=results, rms_px=rms, trajectory=trajectory, warnings=warnings,
-        intrinsics_fixed=fixed, frames_used=used, n_observations=int(len(obs_used)),
+        intrinsics_fixed=intrinsics is not None, frames_used=used, n_observations=int(len(obs_used)),
         n_rejected_views=n_rejected, scale_residual_m=scale_rms, timing_s=timing,
     )
 

@@ -23,7 +23,7 @@ IMAGE_BODY_DOC = {
 
 
 def too_large(limit: int) -> HTTPException:
-    return HTTPException(status.HTTP_413_REQUEST_ENTITY_TOO_LARGE, f"body exceeds the limit of {limit} bytes")
+    return HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"body exceeds the limit of {limit} bytes")
 
 
 def check_declared_length(request: Request, limit: int) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -141,11 +142,15 @@ def submit_training(
     job_id = jobs.new_job_id()
     folder = jobs.uploads_dir(settings.data_dir, job_id)
     folder.mkdir(parents=True, exist_ok=True)
-    for index, data in enumerate(images):
-        suffix = ".png" if data.startswith(PNG_MAGIC) else ".jpg"
-        (folder / f"image_{index:04d}{suffix}").write_bytes(data)
-    params = {"upload_dir": str(folder), "base_classifier_id": base, "name": name, "family": family,
-              "max_pixels": settings.max_image_pixels}
-    job = jobs.create(session, "train_classifier", params, job_id=job_id)
+    try:
+        for index, data in enumerate(images):
+            suffix = ".png" if data.startswith(PNG_MAGIC) else ".jpg"
+            (folder / f"image_{index:04d}{suffix}").write_bytes(data)
+        params = {"upload_dir": str(folder), "base_classifier_id": base, "name": name, "family": family,
+                  "max_pixels": settings.max_image_pixels}
+        job = jobs.create(session, "train_classifier", params, job_id=job_id, max_active=settings.max_queued_jobs)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
     runner.submit(job.id, job.kind)
     return jobs.job_out(job)

@@ -46,3 +46,7 @@ def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
     if row is None:
         raise NotFound(f"{what} {key} not found")
     return row
+
+
+class TooMany(ServiceError):
+    status_code = 429

@@ -12,6 +12,8 @@ from __future__ import annotations
 import importlib
 import logging
 import multiprocessing
+import os
+import socket
 import queue
 import shutil
 import threading
@@ -24,15 +26,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app import logs
 from app.db import make_engine, make_sessionmaker, utcnow
 from app.models import Job
 from app.schemas import JobOut
-from app.services.errors import get_or_404
+from app.services.errors import TooMany, get_or_404
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("app.jobs")
 
 ACTIVE = ("queued", "running")
 # Job kind -> "module:function" run in the worker; looked up by name so that the worker
@@ -56,12 +59,33 @@ def uploads_dir(data_dir: Path, job_id: str) -> Path:
     return data_dir / "uploads" / job_id
 
 
+def runner_id() -> str:
+    """This web process, as recorded on the jobs it owns."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def create(session: Session, kind: str, params: dict[str, Any], environment_id: int | None = None,
-           job_id: str | None = None) -> Job:
+           job_id: str | None = None, max_active: int | None = None) -> Job:
+    """Queue a job row (the caller submits it to the runner). With `max_active`, 429
+    when that many jobs are already queued or running."""
     if kind not in HANDLERS:
         raise ValueError(f"unknown job kind {kind!r}")
+    if max_active is not None:
+        active = session.scalar(select(func.count()).select_from(Job).where(Job.status.in_(ACTIVE))) or 0
+        if active >= max_active:
+            raise TooMany(f"{active} jobs are queued or running (the limit is {max_active}); try again later")
     job = Job(id=job_id or new_job_id(), kind=kind, params=params, environment_id=environment_id,
-              status="queued", progress=0.0, stage="queued", message="")
+              status="queued", progress=0.0, stage="queued", message="", runner=runner_id())
     session.add(job)
     session.commit()
     return job
@@ -89,10 +113,22 @@ def cancel(session: Session, job_id: str) -> Job:
 
 
 def fail_interrupted(session: Session, reason: str) -> int:
-    """Jobs left queued or running by a process that died are failed, never left hanging."""
+    """Jobs left queued or running by a web process that died are failed, never left
+    hanging. Jobs of a sibling process on this host that is still alive are left alone;
+    a job owned by another host cannot be checked from here and is failed only when it
+    has no owner recorded."""
+    host = socket.gethostname()
+    me = runner_id()
+    orphans = []
+    for job_id, runner in session.execute(select(Job.id, Job.runner).where(Job.status.in_(ACTIVE))):
+        owner_host, _, pid = (runner or "").rpartition(":")
+        if runner is None or runner == me or (owner_host == host and not (pid.isdigit() and _process_alive(int(pid)))):
+            orphans.append(job_id)
+    if not orphans:
+        return 0
     result = session.execute(
         update(Job)
-        .where(Job.status.in_(ACTIVE))
+        .where(Job.id.in_(orphans), Job.status.in_(ACTIVE))
         .values(status="failed", stage="interrupted", error=reason, message=reason, finished_at=utcnow())
     )
     session.commit()
@@ -113,10 +149,14 @@ class JobContext:
     data_dir: Path
     sessions: sessionmaker[Session]
     finished: bool = False
+    parent_pid: int | None = None
     _last_write: float = field(default=0.0, repr=False)
 
     def progress(self, stage: str, fraction: float, message: str = "") -> None:
-        """Report progress (at most a few writes a second) and stop if cancelled."""
+        """Report progress (at most a few writes a second) and stop if cancelled, or if
+        the web process that started this worker is gone (its restart fails the job)."""
+        if self.parent_pid is not None and os.getppid() != self.parent_pid:
+            raise Cancelled(self.job_id)
         now = time.monotonic()
         if now - self._last_write < 0.2 and fraction < 1.0:
             return
@@ -152,7 +192,9 @@ class JobContext:
 def execute_job(database_url: str, busy_timeout_ms: int, data_dir: str, job_id: str, handler_path: str) -> None:
     """Entry point of a worker process: run one job to its end with the handler at
     ``handler_path`` ("module:function")."""
-    logging.basicConfig(level=logging.INFO)
+    parent_pid = os.getppid()
+    logs.configure(os.environ.get("FIDOTRACK_LOG_FORMAT", "json"), os.environ.get("FIDOTRACK_LOG_LEVEL", "INFO"))
+    logs.job_id.set(job_id)
     engine = make_engine(database_url, busy_timeout_ms)
     sessions = make_sessionmaker(engine)
     try:
@@ -162,7 +204,9 @@ def execute_job(database_url: str, busy_timeout_ms: int, data_dir: str, job_id: 
                 return  # cancelled before it started
             job.status, job.stage, job.started_at = "running", "starting", utcnow()
             session.commit()
-            context = JobContext(job.id, job.kind, dict(job.params), job.environment_id, Path(data_dir), sessions)
+            context = JobContext(job.id, job.kind, dict(job.params), job.environment_id, Path(data_dir), sessions,
+                                 parent_pid=parent_pid)
+        log.info("job started", extra={"fields": {"kind": context.kind}})
         module_name, function_name = handler_path.split(":")
         handler: Callable[[JobContext], dict[str, Any]] = getattr(
             importlib.import_module(module_name), function_name
@@ -172,6 +216,7 @@ def execute_job(database_url: str, busy_timeout_ms: int, data_dir: str, job_id: 
             if not context.finished:
                 with context.finishing(result):
                     pass
+            log.info("job succeeded")
         except Cancelled:
             log.info("job %s cancelled", job_id)
         except Exception as exc:  # noqa: BLE001  (any failure of the job is reported on the job)
@@ -216,7 +261,14 @@ class JobRunner:
             failed = fail_interrupted(session, "the server stopped while this job was queued or running")
         if failed:
             log.warning("marked %d interrupted job(s) failed", failed)
-        shutil.rmtree(self._data_dir / "uploads", ignore_errors=True)
+        # Uploads of jobs that will never run again; a live sibling's stay.
+        uploads = self._data_dir / "uploads"
+        if uploads.is_dir():
+            with self._sessions() as session:
+                active = set(session.scalars(select(Job.id).where(Job.status.in_(ACTIVE))))
+            for folder in uploads.iterdir():
+                if folder.name not in active:
+                    shutil.rmtree(folder, ignore_errors=True)
         for thread in self._threads:
             thread.start()
 

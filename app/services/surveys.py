@@ -186,7 +186,8 @@ def submit_survey(
         if camera is not None and (camera["width"], camera["height"]) != (params["width"], params["height"]):
             scaled = Camera.from_dict(camera).scaled_to(params["width"], params["height"])
             params["intrinsics"] = scaled.to_dict()
-        job = jobs.create(session, "survey", params, environment_id=environment_id, job_id=job_id)
+        job = jobs.create(session, "survey", params, environment_id=environment_id, job_id=job_id,
+                          max_active=settings.max_queued_jobs)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise

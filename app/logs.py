@@ -1,0 +1,76 @@
+"""Structured logs: one JSON object per line, carrying the request, WebSocket connection
+or job it belongs to (context variables, so every log call inside a request or job gets
+them without passing them around)."""
+
+from __future__ import annotations
+
+import contextvars
+import json
+import logging
+import re
+import sys
+import time
+import uuid
+
+request_id: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
+connection_id: contextvars.ContextVar[str | None] = contextvars.ContextVar("connection_id", default=None)
+job_id: contextvars.ContextVar[str | None] = contextvars.ContextVar("job_id", default=None)
+
+_CLIENT_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex[:16]
+
+
+def client_request_id(header: str | None) -> str:
+    """The caller's X-Request-ID when it is a sane token, else a new one (a log line must
+    not carry arbitrary client text)."""
+    return header if header is not None and _CLIENT_ID.match(header) else new_id()
+
+
+class JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        entry: dict[str, object] = {
+            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        for key, var in (("request_id", request_id), ("connection_id", connection_id), ("job_id", job_id)):
+            value = var.get()
+            if value is not None:
+                entry[key] = value
+        for key, value in getattr(record, "fields", {}).items():
+            entry[key] = value
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str)
+
+
+class TextFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        ids = " ".join(f"{k}={v.get()}" for k, v in (("req", request_id), ("conn", connection_id), ("job", job_id))
+                       if v.get() is not None)
+        fields = " ".join(f"{k}={v}" for k, v in getattr(record, "fields", {}).items())
+        line = f"{self.formatTime(record)} {record.levelname} {record.name} {ids} {record.getMessage()} {fields}"
+        if record.exc_info:
+            line += "\n" + self.formatException(record.exc_info)
+        return line.rstrip()
+
+
+_MARK = "_fidotrack_handler"
+
+
+def configure(fmt: str = "json", level: str = "INFO") -> None:
+    """Send the ``app`` loggers to stderr in `fmt` ("json" or "text"); idempotent."""
+    logger = logging.getLogger("app")
+    logger.setLevel(level.upper())
+    for handler in list(logger.handlers):
+        if getattr(handler, _MARK, False):
+            logger.removeHandler(handler)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
+    setattr(handler, _MARK, True)
+    logger.addHandler(handler)
+    logger.propagate = False

@@ -1,0 +1,121 @@
+"""Pure ASGI middleware (no task groups around ``receive``, so an error raised while a
+body is read reaches the exception handlers as itself).
+
+`BodyLimit`: request body limits, enforced before and while the body is read. A declared Content-Length over the limit is refused with 413 before a byte of the body
+is read; a body without one (chunked) is counted as it streams in and refused as soon as
+it passes the limit, so nothing ever holds more than the limit in memory or on disk.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from fastapi import HTTPException
+
+from app import logs
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+#: Routes that take large uploads (survey videos, training image sets).
+UPLOAD_ROUTES = (re.compile(r"^/environments/\d+/survey$"), re.compile(r"^/classifiers/?$"))
+
+
+def too_large(limit: int) -> HTTPException:
+    return HTTPException(413, f"request body exceeds the limit of {limit} bytes")
+
+
+class BodyLimit:
+    def __init__(self, app: ASGIApp, upload_limit: int, body_limit: int) -> None:
+        self.app = app
+        self.upload_limit = upload_limit
+        self.body_limit = body_limit
+
+    def limit_for(self, scope: Scope) -> int:
+        path = scope.get("path", "")
+        return self.upload_limit if any(r.match(path) for r in UPLOAD_ROUTES) else self.body_limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limit = self.limit_for(scope)
+        headers = dict(scope.get("headers") or [])
+        declared = headers.get(b"content-length")
+        if declared is not None:
+            try:
+                size = int(declared)
+            except ValueError:
+                await _reply(send, 400, "Content-Length is not a number")
+                return
+            if size > limit:
+                await _reply(send, 413, f"request body of {size} bytes exceeds the limit of {limit} bytes")
+                return
+        received = 0
+
+        async def counted() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    raise too_large(limit)
+            return message
+
+        await self.app(scope, counted, send)
+
+
+async def _reply(send: Send, status: int, detail: str) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            (b"connection", b"close")]})
+    await send({"type": "http.response.body", "body": body})
+
+
+class RequestObserver:
+    """Per HTTP request: a request id (the caller's ``X-Request-ID`` when sane, echoed in
+    the reply) for every log line inside it, one access log line, Prometheus metrics by
+    route template."""
+
+    def __init__(self, app: ASGIApp, metrics: Any) -> None:
+        self.app = app
+        self.metrics = metrics
+        self.log = logging.getLogger("app.access")
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        headers = dict(scope.get("headers") or [])
+        raw = headers.get(b"x-request-id")
+        rid = logs.client_request_id(raw.decode("latin-1") if raw is not None else None)
+        token = logs.request_id.set(rid)
+        status = 500
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", rid.encode())]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            route = scope.get("route")
+            template = getattr(route, "path", "unmatched")
+            elapsed = time.perf_counter() - started
+            self.metrics.observe_request(scope["method"], template, status, elapsed)
+            self.log.info("request", extra={"fields": {"method": scope["method"], "route": template,
+                                                       "status": status, "ms": round(elapsed * 1e3, 2)}})
+            logs.request_id.reset(token)

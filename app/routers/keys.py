@@ -1,0 +1,27 @@
+"""API keys (admin scope): create (the secret is in this reply only), list, revoke."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+
+from app.deps import SessionDep
+from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut, Problem
+from app.services import keys
+
+router = APIRouter(prefix="/keys", tags=["keys"])
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=ApiKeyCreated)
+def create_key(spec: ApiKeyCreate, session: SessionDep) -> ApiKeyCreated:
+    created = keys.create(session, spec.name, list(spec.scopes))
+    return ApiKeyCreated(id=created.id, name=created.name, scopes=created.scopes, key=created.key)
+
+
+@router.get("", response_model=list[ApiKeyOut])
+def list_keys(session: SessionDep) -> list[ApiKeyOut]:
+    return [ApiKeyOut.model_validate(k, from_attributes=True) for k in keys.list_all(session)]
+
+
+@router.delete("/{key_id}", response_model=ApiKeyOut, responses={404: {"model": Problem}})
+def revoke_key(key_id: int, session: SessionDep) -> ApiKeyOut:
+    return ApiKeyOut.model_validate(keys.revoke(session, key_id), from_attributes=True)
