@@ -9,12 +9,18 @@ import numpy as np
 
 from sqlalchemy.orm import Session
 
+from app.core.candidates import MIN_SIDE
 from app.core.detector import Detection, Detector
 from app.core.imagecodec import ImageError, decode_gray
 from app.schemas import DetectedTargetOut, DetectResponse
 from app.services import classifiers
-from app.services.errors import Invalid, TooLarge, UnsupportedMedia
+from app.services.errors import Invalid, NotFound, TooLarge, UnsupportedMedia
 from app.settings import Settings
+
+
+# Database ids are signed 64-bit; a bigger one matches nothing (and must not reach the
+# driver, which raises OverflowError: a 500).
+MAX_ID = 2**63 - 1
 
 
 class DetectorCache:
@@ -45,13 +51,20 @@ def decode(data: bytes, settings: Settings) -> np.ndarray:
     if len(data) > settings.max_image_bytes:
         raise TooLarge(f"image of {len(data)} bytes exceeds the limit of {settings.max_image_bytes} bytes")
     try:
-        return decode_gray(data, settings.max_image_pixels)
+        gray = decode_gray(data, settings.max_image_pixels)
     except ImageError as exc:
         if exc.kind == "too_large":
             raise TooLarge(str(exc)) from None
         if exc.kind == "unsupported":
             raise UnsupportedMedia(str(exc)) from None
         raise Invalid(str(exc)) from None
+    if min(gray.shape) < MIN_SIDE:
+        # The detector looks through a window of this size; a smaller frame is a client
+        # error, not a detector failure (it used to surface as a 500).
+        raise Invalid(
+            f"the image is {gray.shape[1]}x{gray.shape[0]} pixels; both sides must be at least {MIN_SIDE}"
+        )
+    return gray
 
 
 def to_response(detection: Detection, width: int, height: int, classifier_id: int,
@@ -79,6 +92,8 @@ def detect(
 
     if family not in FAMILIES:
         raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
+    if classifier_id is not None and not 0 <= classifier_id <= MAX_ID:
+        raise NotFound(f"classifier {classifier_id} not found")
     gray = decode(data, settings)
     chosen = classifier_id if classifier_id is not None else classifiers.default_id(session)
     detector = cache.get(session, chosen, family)

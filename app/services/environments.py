@@ -34,8 +34,12 @@ def _has_map(session: Session, environment_id: int) -> bool:
 
 
 def _check_classifier(session: Session, classifier_id: int | None) -> None:
-    if classifier_id is not None and session.get(Classifier, classifier_id) is None:
-        raise Invalid(f"classifier_id: classifier {classifier_id} does not exist")
+    if classifier_id is None:
+        return
+    try:
+        get_or_404(session, Classifier, classifier_id, "classifier")
+    except NotFound:
+        raise Invalid(f"classifier_id: classifier {classifier_id} does not exist") from None
 
 
 def create(session: Session, spec: EnvironmentCreate) -> EnvironmentOut:

@@ -42,7 +42,8 @@ class Conflict(ServiceError):
 
 def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
     """The row of ``model`` with primary key ``key``, or NotFound("<what> <key> not found")."""
-    row = session.get(model, key)
+    # Ids past 64 bits cannot exist (and the database driver would overflow on them).
+    row = None if isinstance(key, int) and not -(2**63) <= key < 2**63 else session.get(model, key)
     if row is None:
         raise NotFound(f"{what} {key} not found")
     return row

@@ -22,7 +22,7 @@ from app.core.pose import METHODS, PoseUndetermined, TargetObservation, estimate
 from app.models import Environment, SurveyMap
 from app.schemas import CameraModel, MapDocument
 from app.services import classifiers
-from app.services.detection import DetectorCache, decode
+from app.services.detection import MAX_ID, DetectorCache, decode
 from app.services.errors import Invalid, NotFound
 from app.settings import Settings
 
@@ -62,6 +62,8 @@ class TrackingContexts:
         self._contexts: dict[int, TrackingContext] = {}
 
     def get(self, session: Session, environment_id: int) -> TrackingContext:
+        if not 0 <= environment_id <= MAX_ID:  # the driver would raise OverflowError
+            raise NotFound(f"environment {environment_id} not found")
         environment = session.get(Environment, environment_id)
         if environment is None:
             raise NotFound(f"environment {environment_id} not found")
