@@ -11,6 +11,8 @@ import socket
 import subprocess
 import sys
 import time
+import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -19,9 +21,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.core.camera import Camera
-from app.core.scenes import camera_walk, render_walk, room_scene
+from app.core.camera import Camera, Pose
+from app.core.scenes import Scene, camera_walk, render_walk, room_scene
 from app.main import create_app
+from app.schemas import MapDocument
 from app.settings import Settings
 from tests.conftest import example_map
 
@@ -49,8 +52,17 @@ def _start(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
         time.sleep(0.2)
 
 
+@dataclass
+class Room:
+    scene: Scene
+    camera: Camera
+    video: bytes  # a calibration walk, MJPEG AVI
+    frames: list[bytes]  # JPEG frames of a tracking walk
+    poses: list[Pose]
+
+
 @pytest.fixture(scope="module")
-def room_video(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+def room(tmp_path_factory: pytest.TempPathFactory) -> Room:
     rng = np.random.default_rng(4)
     scene = room_scene(rng, (5.0, 4.0, 2.6), n_targets=20, marker_size_m=0.25)
     camera = Camera.pinhole(700.0, 640, 480)
@@ -59,10 +71,13 @@ def room_video(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     for image, _ in render_walk(scene, camera, camera_walk(rng, scene.room_size, 120), rng, degradation="none"):
         writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
     writer.release()
-    return path.read_bytes()
+    poses = camera_walk(rng, scene.room_size, 30, kind="tracking")
+    frames = [cv2.imencode(".jpg", image)[1].tobytes() for image, _ in render_walk(scene, camera, poses, rng)]
+    return Room(scene, camera, path.read_bytes(), frames, poses)
 
 
-def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room_video: bytes) -> None:
+def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room: Room) -> None:
+    room_video = room.video
     data, port, log = tmp_path / "data", _free_port(), tmp_path / "server.log"
     base = f"http://127.0.0.1:{port}"
     server = _start(data, port, log)
@@ -154,3 +169,48 @@ def test_request_ids_are_echoed_and_logged(client: TestClient, caplog: pytest.Lo
     finally:
         logger.removeHandler(caplog.handler)
     assert any(getattr(r, "fields", {}).get("route") == "/environments" for r in caplog.records)
+
+
+def test_survey_and_several_tracking_clients_at_once_lose_nothing(client: TestClient, room: Room) -> None:
+    tracked = client.post("/environments", json={"name": "tracked", "marker_size_m": 0.25}).json()["id"]
+    true_map = room.scene.map_document(room.camera)
+    client.put(f"/environments/{tracked}/map", json=true_map).raise_for_status()
+    surveyed = client.post("/environments", json={"name": "surveyed", "marker_size_m": 0.25}).json()["id"]
+    job = client.post(f"/environments/{surveyed}/survey", files={"video": ("v.avi", room.video, "video/avi")}).json()
+
+    results: dict[int, list[dict]] = {}
+    failures: list[BaseException] = []
+
+    def track(worker: int) -> None:
+        try:
+            replies = []
+            with client.websocket_connect(f"/track?environment_id={tracked}") as ws:
+                assert ws.receive_json()["type"] == "hello"
+                for data in room.frames:
+                    ws.send_bytes(data)
+                    replies.append(ws.receive_json())
+            results[worker] = replies
+        except BaseException as exc:  # noqa: BLE001  (reported below)
+            failures.append(exc)
+
+    threads = [threading.Thread(target=track, args=(k,)) for k in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(240)
+    assert not failures, failures
+    for replies in results.values():
+        assert [r["type"] for r in replies] == ["frame"] * len(room.frames)
+        assert [r["seq"] for r in replies] == list(range(len(room.frames)))
+        assert sum(r["dropped"] for r in replies) == 0
+        errors = [np.linalg.norm(np.asarray(r["pose"]["position"]) - room.poses[r["seq"]].position)
+                  for r in replies if r["pose"] is not None]
+        assert len(errors) >= len(room.frames) // 2 and np.median(errors) < 0.02
+    deadline = time.monotonic() + 240
+    while (state := client.get(f"/jobs/{job['id']}").json())["status"] in ("queued", "running"):
+        assert time.monotonic() < deadline, state
+        time.sleep(0.3)
+    assert state["status"] == "succeeded", state
+    assert client.get(f"/environments/{surveyed}/map").json()["survey_job_id"] == job["id"]
+    assert client.get(f"/environments/{tracked}/map").json() == MapDocument.model_validate(true_map).model_dump(
+        mode="json")

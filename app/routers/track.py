@@ -15,6 +15,7 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
+from app import logs
 from app.deps import SessionDep, SettingsDep
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem
@@ -82,10 +83,15 @@ async def track(websocket: WebSocket, environment_id: str | None = None) -> None
         await _refuse(websocket, "too_many_connections",
                       f"the server already tracks {connections.limit} connections; try again later", CLOSE_TRY_LATER)
         return
+    # Every log line of this connection carries its id (and the key's name when keys are on).
+    token = logs.connection_id.set(logs.new_id())
+    log.info("track connection opened", extra={"fields": {"environment_id": environment_id}})
     try:
         await _serve(websocket, app, settings, environment_id)
     finally:
         connections.release()
+        log.info("track connection closed")
+        logs.connection_id.reset(token)
 
 
 async def _serve(websocket: WebSocket, app: Any, settings: Any, environment_id: str | None) -> None:
