@@ -260,3 +260,18 @@ def test_normalise_windows_is_gain_and_offset_invariant() -> None:
     assert np.allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)
     flat = cand.normalise_windows(np.full((1, 12, 12), 7.0))
     assert np.all(np.isfinite(flat)) and np.allclose(flat, 0.0)
+
+
+def test_workspace_reuse_does_not_leak_between_frames(classifier: DiscClassifier) -> None:
+    """The detector writes stage 1a into per-thread buffers: a frame's candidates do not
+    depend on what was detected before (another frame, another size)."""
+    (a, _), (b, _) = _frames("default", 2, seed=21)
+    first = find_candidates(a, classifier)
+    find_candidates(b, classifier)
+    find_candidates(np.ascontiguousarray(b[:300, :400]), classifier)
+    again = find_candidates(a, classifier)
+    np.testing.assert_array_equal(first, again)
+    # and the same as with a fresh workspace
+    s1 = cand.stage1_windows(a, classifier, workspace=cand._Workspace())
+    s2 = cand.stage1_windows(a, classifier)
+    np.testing.assert_array_equal(s1.windows, s2.windows)

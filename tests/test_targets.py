@@ -231,3 +231,28 @@ def test_timing_and_counts(default_frames: list) -> None:
     out = tg.assemble_targets(image, cand, timing=timing, counts=counts)
     assert set(timing) == {"group", "verify", "refine", "identify"}
     assert counts["proposals"] >= counts["quick"] >= counts["verified"] >= counts["identified"] == len(out)
+
+
+def _smeared_card(marker_id: int, px: int, length: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    from app.core import degrade
+
+    img = np.full((px + 80, px + 80), 90, np.uint8)
+    img[40 : 40 + px, 40 : 40 + px] = render_card(marker_layout(DEFAULT_FAMILY, marker_id), px)
+    discs = np.asarray(marker_layout(DEFAULT_FAMILY, marker_id).discs, np.float64) * px - 0.5 + 40
+    return degrade.motion_blur(img, length, angle), discs
+
+
+def test_motion_blurred_codes_are_read_by_the_smear_templates(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A small card smeared by two cell widths: the motion fallback reads codes the
+    isotropic templates refuse, and never reads a wrong one."""
+    found = {True: 0, False: 0}
+    for marker_id in range(0, 60, 5):
+        for angle in (0.3, 1.1, 2.0, 2.7):
+            img, discs = _smeared_card(marker_id, 48, 12.0, angle)
+            cand = np.column_stack([discs, np.full(4, 0.125 * 48), np.ones(4)])
+            for on in (True, False):
+                monkeypatch.setattr(tg, "MOTION_MAX_READS", 4 if on else 0)
+                out = tg.assemble_targets(img, cand)
+                assert all(t.id == marker_id for t in out)
+                found[on] += any(t.id == marker_id for t in out)
+    assert found[True] > found[False]

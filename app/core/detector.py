@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.core.candidates import DiscClassifier, find_candidates
+from app.core.candidates import DiscClassifier, detect_windows
 from app.core.markers import DEFAULT_FAMILY, get_family
 from app.core.targets import DetectedTarget, assemble_targets
 
@@ -36,10 +36,11 @@ class Detector:
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise ValueError(f"expected a uint8 greyscale image, got {gray.dtype} {gray.shape}")
         start = time.perf_counter()
-        candidates = find_candidates(gray, self.classifier)
+        candidates, s1, _ = detect_windows(gray, self.classifier)
         found = time.perf_counter()
         stages: dict[str, float] = {}
-        targets = assemble_targets(gray, candidates, self.family, timing=stages)
+        # The candidate stage's pyramid serves the targets' sampling too.
+        targets = assemble_targets(gray, candidates, self.family, timing=stages, pyramid=s1.levels)
         done = time.perf_counter()
         timing = {"candidates": (found - start) * 1e3, "targets": (done - found) * 1e3}
         timing.update({f"targets.{k}": v for k, v in stages.items()})  # group, verify, refine, identify
