@@ -13,8 +13,10 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.core.adapt import adapt_classifier
 from app.core.candidates import DiscClassifier, load_default_classifier
-from app.core.imagecodec import PNG_MAGIC
+from app.core.imagecodec import PNG_MAGIC, decode_gray
+from app.core.markers import FAMILIES
 from app.models import Classifier, ClassifierArray
 from app.schemas import ClassifierOut, JobOut
 from app.services import jobs
@@ -85,9 +87,6 @@ def get(session: Session, classifier_id: int) -> ClassifierOut:
 
 def run_training_job(context: Any) -> dict[str, Any]:
     """Job handler: adapt a classifier to a site's own images (see ``app.core.training``)."""
-    from app.core.imagecodec import decode_gray
-    from app.core.adapt import adapt_classifier
-
     params = context.params
     image_dir = Path(params["upload_dir"])
     with context.sessions() as session:
@@ -122,8 +121,8 @@ def submit_training(
 ) -> JobOut:
     """Check the upload whole, store the images under server-chosen names and queue
     the training job. Nothing is stored when any image is refused."""
-    from app.core.markers import FAMILIES
-    from app.services.detection import decode
+    from app.services.detection import decode  # detection imports this module
+
 
     if family not in FAMILIES:
         raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")

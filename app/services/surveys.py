@@ -26,9 +26,11 @@ from sqlalchemy.orm import Session
 from app.core.camera import Camera
 from app.core.detector import Detector
 from app.core.imagecodec import PNG_MAGIC, decode_gray
+from app.core.survey import SurveyError, survey
 from app.models import Environment
 from app.schemas import CameraModel, JobOut, MapDocument
 from app.services import classifiers, environments, jobs
+from app.services.detection import decode
 from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia, get_or_404
 from app.services.jobs import JobRunner
 from app.settings import Settings
@@ -169,8 +171,6 @@ def submit_survey(
                 _save_stream(stream, path, settings.max_upload_bytes, budget)
                 data = path.read_bytes()
                 try:
-                    from app.services.detection import decode
-
                     gray = decode(data, settings)
                 except ServiceError as exc:
                     exc.detail = f"images[{index}]: {exc.detail}"
@@ -232,7 +232,6 @@ def read_frames(params: dict[str, Any]) -> Iterator[tuple[int, int, np.ndarray]]
 
 def run_survey_job(context: Any) -> dict[str, Any]:
     """Job handler: detect, reconstruct, store the map (see the module docstring)."""
-    from app.core.survey import SurveyError, survey
 
     params = context.params
     with context.sessions() as session:
