@@ -73,23 +73,26 @@ def test_synthetic_survey_recovers_lens_and_map() -> None:
     truth = {t.id: t.discs for t in scene.targets}
     sim = similarity_from_points(np.concatenate([t.discs for t in result.targets]),
                                  np.concatenate([truth[t.id] for t in result.targets]))
+    # (Frames that see 2+ targets: a pose from one small card is coarse, cm at 3 m.)
     errors = [np.linalg.norm(sim.apply_pose(p).position - q.position)
-              for p, q in zip(result.trajectory, poses, strict=True) if p is not None]
+              for p, q, f in zip(result.trajectory, poses, frames, strict=True) if p is not None and len(f) >= 2]
     assert np.median(errors) < 0.01
     # Progress: named stages, fractions in [0, 1], ending at 1.
     assert stages[-1] == ("done", 1.0) and all(0.0 <= f <= 1.0 for _, f in stages)
     # Uncertainties are real numbers of the right order (detector noise 0.1 px).
     std = np.concatenate([t.std_m for t in result.targets])
-    assert np.isfinite(std).all() and 1e-5 < np.median(std) < 0.01
+    # (Relative to the frame held in the bundle, so larger than the error left after an
+    # alignment: ~1 cm here vs 2-3 mm.)
+    assert np.isfinite(std).all() and 1e-5 < np.median(std) < 0.02
 
 
-@pytest.mark.xfail(strict=True, reason="known weakness: misidentified views in the first frames derail the "
-                   "incremental growth (the survey then refuses with SurveyError instead of removing them)")
 def test_misidentified_views_are_removed() -> None:
     scene, _ = _room()
-    frames = _synthetic_frames(0.1, seed=1)
-    # Relabel one target as another in a few frames (a misread code): same pixels,
-    # wrong id, so the views land on the wrong 3D points.
+    clean = _synthetic_frames(0.1, seed=1)
+    frames = [list(f) for f in clean]
+    # Relabel one target as another in a few frames at the start of the video (a misread
+    # code): same pixels, wrong id, so the views land on the wrong 3D points. Frame 3
+    # sees only the relabelled card, frames 0-2 see it with cards not yet surveyed.
     ids_seen = sorted({t.id for f in frames for t in f})
     wrong_id = ids_seen[0]
     injected = 0
@@ -102,8 +105,35 @@ def test_misidentified_views_are_removed() -> None:
         injected += 1
     assert injected == 4
     result = survey(frames, 640, 480, SIZE)
+    reference = survey(clean, 640, 480, SIZE)
+    assert len(result.targets) == len(reference.targets) == len(ids_seen)
     assert result.n_rejected_views >= injected
-    assert _disc_rms(result, scene) < 0.003
+    # The map is as good as without the misread codes (this walk's geometry allows
+    # ~5 mm at 0.1 px noise; see the clean survey).
+    assert _disc_rms(result, scene) < 1.1 * _disc_rms(reference, scene) + 0.0002
+    assert _disc_rms(result, scene) < 0.006
+    assert result.rms_px < 0.3
+
+
+@pytest.mark.xfail(strict=True, reason="known weakness: the same misread code in consecutive frames, before "
+                   "the real target is surveyed, places that target wrongly (consistent wrong views) and the "
+                   "growth does not recover")
+def test_wrongly_identified_card_in_later_frames_is_removed() -> None:
+    """A misread code in the middle of the video, in frames with other targets."""
+    scene, _ = _room()
+    frames = [list(f) for f in _synthetic_frames(0.1, seed=5)]
+    ids_seen = sorted({t.id for f in frames for t in f})
+    injected = 0
+    for k in range(40, len(frames)):
+        f = frames[k]
+        ids = {t.id for t in f}
+        spare = [i for i in ids_seen if i not in ids]
+        if len(f) >= 3 and injected < 3:
+            f[0] = DetectedTarget(spare[0], f[0].discs, 1.0)
+            injected += 1
+    result = survey(frames, 640, 480, SIZE)
+    assert result.n_rejected_views >= injected
+    assert _disc_rms(result, scene) < 0.006
     assert result.rms_px < 0.3
 
 

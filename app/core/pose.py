@@ -105,12 +105,29 @@ def _sqpnp(world: np.ndarray, normalised: np.ndarray) -> Pose:
     return Pose.from_rvec_tvec(rvec.ravel(), tvec.ravel())
 
 
-def _ippe(world: np.ndarray, normalised: np.ndarray) -> Pose:
-    """Pose from one planar target (IPPE: the better of its two solutions)."""
-    ok, rvec, tvec = cv2.solvePnP(world, normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        raise PoseUndetermined("no pose from this target")
-    return Pose.from_rvec_tvec(rvec.ravel(), tvec.ravel())
+def _planar_poses(world: np.ndarray, image: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> list[Pose]:
+    """Both poses (IPPE) of points that lie close to a plane, in the points' own frame.
+
+    IPPE wants exactly coplanar points; surveyed discs are a little off their card's
+    plane (each disc is its own 3D point), so the points are projected onto their
+    best-fit plane first and the poses taken back to the map frame. The two are the
+    two tilts a small or far planar target cannot tell apart; the caller refines both.
+    """
+    centre = world.mean(axis=0)
+    _, _, Vt = np.linalg.svd(world - centre)
+    if np.linalg.det(Vt) < 0:
+        Vt[2] *= -1
+    planar = np.c_[((world - centre) @ Vt.T)[:, :2], np.zeros(len(world))]
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(planar, image, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        return []
+    poses = []
+    for rvec, tvec in zip(rvecs, tvecs, strict=False):
+        plane_pose = Pose.from_rvec_tvec(rvec.ravel(), tvec.ravel())
+        R = plane_pose.R @ Vt
+        poses.append(Pose(R, plane_pose.t - R @ centre))
+    return poses
 
 
 def _camera_with_focal(camera: Camera, focal: float) -> Camera:
@@ -199,26 +216,42 @@ def _estimate(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray, 
     )
 
 
+#: Points whose spread off their best-fit plane is below this fraction of their
+#: extent are treated as (nearly) coplanar: both planar poses are tried as starts.
+NEAR_PLANAR = 0.05
+
+
 def _fit(camera: Camera, world: np.ndarray, image: np.ndarray, spread: np.ndarray | None = None) -> Pose:
     """A global initial pose, then OpenCV's LM with the full lens model.
 
     Coplanar points (one target, or targets on one wall) have two nearly equally good
-    poses when seen small; IPPE gives both, and the better after refinement wins.
-    Otherwise SQPnP, which is global for any configuration.
+    poses when seen small. SQPnP alone is not enough there: on points that are only
+    nearly coplanar (a surveyed card: each disc is its own 3D point, a fraction of a
+    millimetre off the plane) it can return the wrong tilt, a pose metres away that
+    fits almost as well. So near-planar point sets also start from both planar poses
+    (IPPE on the best-fit plane); every start is refined and the lowest cost wins.
     """
     if spread is None:
         spread = np.linalg.svd(world - world.mean(axis=0), compute_uv=False)
-    if spread[2] < 1e-4 * spread[0]:
-        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(world, image, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
-        starts = list(zip(rvecs, tvecs, strict=True))
-    else:
-        ok, rvec, tvec = cv2.solvePnP(world, image, camera.K, camera.dist, flags=cv2.SOLVEPNP_SQPNP)
-        starts = [(rvec, tvec)] if ok else []
+    starts: list[tuple[np.ndarray, np.ndarray]] = []
+    if spread[2] < NEAR_PLANAR * spread[0]:
+        starts += [(p.rvec.reshape(3, 1), p.t.reshape(3, 1)) for p in _planar_poses(world, image, camera.K, camera.dist)]
+    if spread[2] >= 1e-4 * spread[0] or not starts:
+        try:
+            ok, rvec, tvec = cv2.solvePnP(world, image, camera.K, camera.dist, flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            ok = False
+        if ok:
+            starts.append((rvec, tvec))
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     for rvec, tvec in starts:
         rvec, tvec = cv2.solvePnPRefineLM(world, image, camera.K, camera.dist, rvec.copy(), tvec.copy())
         projected, _ = cv2.projectPoints(world, rvec, tvec, camera.K, camera.dist)
         cost = float(((projected.reshape(-1, 2) - image) ** 2).sum())
+        # A pose with points behind the camera is no pose, however well it "fits".
+        R, _ = cv2.Rodrigues(rvec)
+        if ((world @ R.T)[:, 2] + tvec.ravel()[2] <= 0).any():
+            continue
         if best is None or cost < best[0]:
             best = (cost, rvec, tvec)
     if best is None:
@@ -292,21 +325,19 @@ def _consensus(observations: Sequence[TargetObservation], camera: Camera, image:
     normalised = _ideal(camera, image)
     for k in range(len(observations)):
         mine = owner == k
-        try:
-            pose = _ippe(world[mine], normalised[mine])
-        except (PoseUndetermined, cv2.error):
-            continue
-        cam = pose.transform(world)
-        if (cam[:, 2] <= 0).any():
-            continue
-        error = np.linalg.norm(camera.project(cam) - image, axis=1)
-        worst = np.zeros(len(observations))
-        np.maximum.at(worst, owner, error)
-        # A single target's pose is coarse far away: be generous, refine decides.
-        agree = worst < 8 * outlier_px
-        score = agree.sum() - 1e-3 * np.median(error)
-        if score > best_score:
-            best, best_score = agree, score
+        # Both tilts of the target vote: the wrong one explains few others.
+        for pose in _planar_poses(world[mine], normalised[mine], np.eye(3), None):
+            cam = pose.transform(world)
+            if (cam[:, 2] <= 0).any():
+                continue
+            error = np.linalg.norm(camera.project(cam) - image, axis=1)
+            worst = np.zeros(len(observations))
+            np.maximum.at(worst, owner, error)
+            # A single target's pose is coarse far away: be generous, refine decides.
+            agree = worst < 8 * outlier_px
+            score = agree.sum() - 1e-3 * np.median(error)
+            if score > best_score:
+                best, best_score = agree, score
     return best if best.sum() >= 1 else np.ones(len(observations), bool)
 
 

@@ -12,16 +12,25 @@ The pipeline:
 1. initial focal length from the card homographies (a card is a planar square; with
    square pixels and the principal point at the image centre each tilted card gives
    Zhang's two constraints on f), a robust fit over all cards of all frames;
-2. a metric start: the frame that sees most targets fixes the map frame, its cards are
-   placed by their own planar pose (IPPE) at their printed size;
+2. a metric start from two frames that share several targets seen from some degrees
+   apart: relative pose by the essential matrix (5-point RANSAC over the shared disc
+   centres, so a misread code is an outlier), discs by triangulation, scale from the
+   printed card size. No card is placed from its own planar pose here: for small cards
+   the two tilts fit alike and a wrong one misleads everything registered against it
+   (fallback when no pair qualifies: the frame that sees most targets, planar poses);
 3. incremental growth: frames are registered by PnP against the discs known so far
-   (robust over targets, `pose.nonlinear`), new targets are triangulated from every
-   registered view (DLT, trimmed) or, while their baseline is still narrow, placed by
-   their planar pose; a bundle adjustment now and then keeps the growth honest;
+   (robust over targets, `pose.nonlinear`; targets it refuses are set aside in that
+   frame), new targets are triangulated by consensus over pairs of registered views
+   (DLT; views of a misread card disagree and are left out) or, while their baseline is
+   still narrow, placed by their planar pose; a frame that rests on a single card must
+   fit the camera's motion (its neighbours' poses), which refuses the wrong tilt and a
+   card with a misread code; a bundle adjustment after each pass keeps the growth
+   honest;
 4. bundle adjustment over f, principal point, k1, k2, every pose and every disc, Huber
    loss, analytic Jacobian, Levenberg-Marquardt with the cameras eliminated (Schur
    complement; see ``bundle_adjust`` for why); views that still do not fit (a
-   misidentified target, a broken track) are removed and it is run again;
+   misidentified target, a broken track) are removed, views set aside earlier that fit
+   now are taken back, and it is run again;
 5. metric scale: the least-squares scale that gives the known disc-to-disc distances of
    every card (sides 0.6 s, diagonals 0.6 sqrt(2) s) — optionally also as a soft prior
    inside the bundle adjustment (``card_prior_m``);
@@ -292,6 +301,126 @@ def _max_angle_deg(centres: np.ndarray, point: np.ndarray) -> float:
         d = d[np.linspace(0, len(d) - 1, 400).astype(int)]
     cos = np.clip(d @ d.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos.min())))
+
+
+def _triangulate_robust(poses: Sequence[Pose], x: np.ndarray, tol: float, rng: np.random.Generator
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A card's 4 discs from V >= 2 views (x: (V, 4, 2) normalised), robust to views
+    that belong to another card (a misidentified target moves all its 4 discs).
+
+    Consensus over pairs of views (all pairs when few, a sample when many): each pair
+    triangulates the card, the views it explains to within ``tol`` (normalised units,
+    worst disc) vote; the largest consensus (then the smallest error) is triangulated
+    again from all its views. None when no two views agree. Returns (X (4, 3), inlier
+    mask over views).
+    """
+    V = len(poses)
+    pairs = [(i, j) for i in range(V) for j in range(i + 1, V)]
+    if len(pairs) > 40:
+        pick = rng.choice(len(pairs), 40, replace=False)
+        pairs = [pairs[k] for k in pick]
+    best: tuple[int, float, np.ndarray] | None = None
+    for i, j in pairs:
+        X = np.array([_triangulate([poses[i], poses[j]], x[[i, j], d]) for d in range(4)])
+        if not np.isfinite(X).all():
+            continue
+        err = np.array([np.abs(_project_norm(p, X) - x[k]).max() if (p.transform(X)[:, 2] > 0).all() else np.inf
+                        for k, p in enumerate(poses)])
+        inl = err < tol
+        if inl[i] and inl[j]:
+            key = (int(inl.sum()), -float(err[inl].mean()))
+            if best is None or key > (best[0], best[1]):
+                best = (key[0], key[1], inl)
+        if best is not None and best[0] == V:
+            break
+    if best is None:
+        return None
+    inl = best[2]
+    idx = np.flatnonzero(inl)
+    X = np.array([_triangulate([poses[k] for k in idx], x[idx, d]) for d in range(4)])
+    if not np.isfinite(X).all():
+        return None
+    return X, inl
+
+
+def _two_view_seed(camera: Camera, view_frame: np.ndarray, view_target: np.ndarray, view_uv: np.ndarray,
+                   views_of_frame: list[np.ndarray], marker_size_m: float, tol_px: float
+                   ) -> tuple[int, int, Pose, dict[int, np.ndarray]] | None:
+    """The start of the map from two frames by the essential matrix (no card planarity).
+
+    Placing a card from its own planar pose is a coin toss for small cards (two tilts
+    fit equally well) and a wrong tilt misleads everything registered against it. Two
+    frames that share several targets, seen from directions some degrees apart, give
+    the relative pose (5-point RANSAC over all shared disc centres: a misidentified
+    target is an outlier) and the discs by triangulation, with no tilt to choose. The
+    printed card size gives the scale. Returns (frame a, frame b, pose of b (a is the
+    identity), {target index: (4, 3) discs}) or None when no pair gives a start.
+    """
+    n_frames = len(views_of_frame)
+    counts = np.array([len(v) for v in views_of_frame])
+    x_all = _normalised(camera, view_uv.reshape(-1, 2)).reshape(-1, 4, 2)
+    frame_views = [dict(zip(view_target[v].tolist(), v.tolist(), strict=True)) for v in views_of_frame]
+    tol = tol_px / camera.fx
+    best: tuple[float, int, int, Pose, dict[int, np.ndarray]] | None = None
+    for a in np.argsort(-counts, kind="stable")[:6]:
+        a = int(a)
+        if counts[a] < 3:
+            break
+        ta = frame_views[a]
+        partners = [b for b in range(n_frames) if b != a and sum(t in ta for t in frame_views[b]) >= 3]
+        if len(partners) > 30:
+            partners = [partners[k] for k in np.linspace(0, len(partners) - 1, 30).round().astype(int)]
+        for b in partners:
+            shared = [t for t in frame_views[b] if t in ta]
+            x1 = np.concatenate([x_all[ta[t]] for t in shared])
+            x2 = np.concatenate([x_all[frame_views[b][t]] for t in shared])
+            try:
+                E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), cv2.RANSAC, 0.999, tol)
+            except cv2.error:
+                continue
+            if E is None or E.shape[0] < 3 or mask is None:
+                continue
+            candidates = [E[3 * k : 3 * k + 3] for k in range(E.shape[0] // 3)]
+            for E in candidates:
+                try:
+                    _, R, t, _ = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
+                except cv2.error:
+                    continue
+                pb = Pose(R, t.ravel())
+                pa = Pose.identity()
+                X = cv2.triangulatePoints(np.c_[np.eye(3), np.zeros(3)], np.c_[R, t], x1.T, x2.T)
+                if (np.abs(X[3]) < 1e-12).any():
+                    continue
+                X = (X[:3] / X[3]).T
+                err = np.maximum(np.abs(_project_norm(pa, X) - x1).max(axis=1),
+                                 np.abs(_project_norm(pb, X) - x2).max(axis=1))
+                ok = (err < tol) & (X[:, 2] > 0) & (pb.transform(X)[:, 2] > 0)
+                ok_t = ok.reshape(-1, 4).all(axis=1)
+                if ok_t.sum() < 3:
+                    continue
+                Xg = X.reshape(-1, 4, 3)[ok_t]
+                ray_a = Xg.mean(axis=1)
+                ray_b = ray_a - pb.position
+                cos = (ray_a * ray_b).sum(axis=1) / (np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1))
+                angle = float(np.degrees(np.median(np.arccos(np.clip(cos, -1, 1)))))
+                if angle < 3.0:
+                    continue
+                d = np.linalg.norm(Xg[:, _PAIRS[:, 0]] - Xg[:, _PAIRS[:, 1]], axis=2).ravel()
+                L = np.tile(_PAIR_UNITS * marker_size_m, len(Xg))
+                scale = float((d * L).sum() / (d * d).sum())
+                # Cards whose triangulated shape is far from the printed one are not kept.
+                shape = np.abs(scale * d - L).reshape(-1, 6).max(axis=1) < 0.25 * marker_size_m
+                if shape.sum() < 3:
+                    continue
+                score = float(shape.sum()) * min(angle, 10.0)
+                if best is None or score > best[0]:
+                    kept = [tg for tg, k in zip(np.array(shared)[ok_t], shape, strict=True) if k]
+                    discs = {int(tg): scale * Xg[i] for i, tg in enumerate(np.array(shared)[ok_t]) if shape[i]}
+                    assert len(discs) == len(kept)
+                    best = (score, a, b, Pose(pb.R, scale * pb.t), discs)
+    if best is None:
+        return None
+    return best[1], best[2], best[3], best[4]
 
 
 def _make_camera(intr: np.ndarray, width: int, height: int) -> Camera:
@@ -665,15 +794,29 @@ def survey(
     view_target = tracks.target[::4]
     view_uv = tracks.uv.reshape(-1, 4, 2)
     areas = np.array([abs(cv2.contourArea(q.astype(np.float32))) for q in view_uv])
-    # The frame that sees most targets (then most card area) fixes the map frame.
-    score = views_per_frame * 1e9 + np.bincount(view_frame, weights=areas, minlength=n_frames)
-    seed = int(np.argmax(score))
-    bundle.set_pose(seed, Pose.identity())
     views_of_frame = [np.flatnonzero(view_frame == f) for f in range(n_frames)]
     views_of_target = [np.flatnonzero(view_target == t) for t in range(n_targets)]
     usable = np.ones(len(view_frame), bool)  # views not (yet) found to be wrong
     placed_by_plane = np.zeros(n_targets, bool)
     weak = np.zeros(n_frames, bool)  # registered from a single target
+    rng = np.random.default_rng(0)  # deterministic sampling of view pairs
+    # Before the lens is fitted the image is off by the unmodelled distortion (several
+    # pixels at the edges): judge loosely until then.
+    loose_px = 2 * outlier_px if fixed else 4 * outlier_px
+    start = _two_view_seed(camera, view_frame, view_target, view_uv, views_of_frame, marker_size_m, loose_px)
+    if start is not None:
+        seed, partner, partner_pose, discs = start
+        bundle.set_pose(seed, Pose.identity())
+        bundle.set_pose(partner, partner_pose)
+        for t, X in discs.items():
+            bundle.X[4 * t : 4 * t + 4] = X
+    else:
+        # No pair of frames gives a start (too few targets shared, too little motion):
+        # the frame that sees most targets (then most card area) fixes the map frame
+        # and its cards are placed by their planar poses.
+        score = views_per_frame * 1e9 + np.bincount(view_frame, weights=areas, minlength=n_frames)
+        seed = int(np.argmax(score))
+        bundle.set_pose(seed, Pose.identity())
 
     def place_targets() -> int:
         """Place every unplaced target seen by a registered frame."""
@@ -694,16 +837,12 @@ def survey(
             if len(views) >= 2:
                 centres = np.array([p.position for p in poses])
                 x = np.stack([_normalised(bundle.camera, view_uv[v]) for v in views])  # (V, 4, 2)
-                X = np.array([_triangulate(poses, x[:, d]) for d in range(4)])
-                if np.isfinite(X).all() and _max_angle_deg(centres, X.mean(axis=0)) >= MIN_BASELINE_DEG:
-                    # Trim views that disagree (misidentified) and triangulate again.
-                    err = np.array([np.abs(_project_norm(p, X) - x[k]).max() for k, p in enumerate(poses)])
-                    good = err * bundle.camera.fx < max(outlier_px * 3, 1.0)
-                    if 2 <= good.sum() < len(views):
-                        poses_g = [p for p, g in zip(poses, good, strict=True) if g]
-                        X = np.array([_triangulate(poses_g, x[good, d]) for d in range(4)])
-                    depth_ok = np.mean([(p.transform(X)[:, 2] > 0).all() for p in poses]) > 0.5
-                    if np.isfinite(X).all() and depth_ok:
+                tol = (outlier_px if lens_refined else loose_px) / bundle.camera.fx
+                found = _triangulate_robust(poses, x, tol, rng)
+                if found is not None:
+                    X, inl = found
+                    wide = _max_angle_deg(centres[inl], X.mean(axis=0)) >= MIN_BASELINE_DEG
+                    if wide and (inl.sum() >= 3 or inl.sum() == len(views)):
                         bundle.X[4 * t : 4 * t + 4] = X
                         # An upgrade from a planar placement also counts: the map changed.
                         placed_by_plane[t] = False
@@ -711,7 +850,9 @@ def survey(
                         continue
             if np.isfinite(bundle.X[4 * t, 0]):
                 continue  # keep the planar placement until the baseline allows better
-            views = strong
+            # From frames whose pose rests on 2+ targets if any; a frame posed from one card
+            # is the last resort (the only link to a part of the room seen apart).
+            views = strong or views
             if not views:
                 continue
             # Narrow baseline so far: the card's own planar pose in its largest view.
@@ -761,11 +902,46 @@ def survey(
                 poses.append(pose)
         if not poses or not len(registered):
             return None
-        nearest = registered[np.argmin(np.abs(registered - f))]
-        if abs(nearest - f) > 10 and len(poses) > 1:
-            return None  # no neighbour to decide by: wait for a better view
-        ref = bundle.pose(int(nearest))
-        return min(poses, key=lambda p: _rotation_angle(p, ref))
+        best = min(poses, key=lambda p: continuity(f, p))
+        return best if np.isfinite(continuity(f, best)) else None
+
+    def continuity(f: int, pose: Pose) -> float:
+        """How far ``pose`` is from the nearest frame registered on 2+ targets, in units
+        of the camera's typical motion over that many frames; inf when implausible or
+        when there is no such frame within 10 frames.
+
+        A pose that rests on one card is checked against the video's motion: a card
+        seen from far has two tilts that fit (poses metres apart), and a card with a
+        misread code fits perfectly somewhere else in the room. A hand-held camera
+        moves smoothly, so the pose must lie near its neighbours'.
+        """
+        strong = np.flatnonzero(bundle.registered() & ~weak)
+        strong = strong[strong != f]
+        if not len(strong):
+            return np.inf
+        nearest = int(strong[np.argmin(np.abs(strong - f))])
+        gap = abs(nearest - f)
+        if gap > 10:
+            return np.inf
+        # The camera's motion per frame, from consecutive frames registered on 2+ targets.
+        pairs = strong[:-1][np.diff(strong) == 1]
+        if len(pairs) >= 3:
+            steps = np.array([np.linalg.norm(bundle.pose(int(a)).position - bundle.pose(int(a) + 1).position)
+                              for a in pairs[:: max(1, len(pairs) // 50)]])
+            angles = np.array([_rotation_angle(bundle.pose(int(a)), bundle.pose(int(a) + 1))
+                               for a in pairs[:: max(1, len(pairs) // 50)]])
+            step, turn = float(np.median(steps)), float(np.median(angles))
+        else:
+            step, turn = np.inf, np.inf
+        ref = bundle.pose(nearest)
+        depth = float(np.linalg.norm(ref.position - bundle.X[np.isfinite(bundle.X[:, 0])].mean(axis=0)))
+        max_move = max(3 * gap * step, 0.05 * depth) if np.isfinite(step) else 0.5 * depth
+        max_turn = max(3 * gap * turn, np.radians(5)) if np.isfinite(turn) else np.radians(30)
+        move = float(np.linalg.norm(pose.position - ref.position))
+        angle = _rotation_angle(pose, ref)
+        if move > max_move or angle > max_turn:
+            return np.inf
+        return move / max_move + angle / max_turn
 
     def register_frames(min_targets: int, attempted: dict[int, int]) -> int:
         """PnP of every unregistered frame that sees ``min_targets`` placed targets."""
@@ -781,22 +957,43 @@ def survey(
             attempted[f] = count
             obs = [TargetObservation(int(view_target[v]), view_uv[v], bundle.X[4 * view_target[v] : 4 * view_target[v] + 4])
                    for v in views]
-            if count == 1:
-                pose = single_target_pose(f, obs[0])
-                if pose is not None:
-                    bundle.set_pose(f, pose)
-                    weak[f] = True
-                    added += 1
+            est = None
+            if count >= 2:
+                try:
+                    est = nonlinear(obs, bundle.camera, outlier_px=max(outlier_px, 4.0))
+                except (PoseUndetermined, cv2.error):
+                    est = None
+                # The map is still coarse while it grows: accept a loose fit, BA tightens it.
+                if est is not None and est.rms_px > (2 if lens_refined else 10) * outlier_px:
+                    est = None
+                # A pose that rests on one card after all must fit the camera's motion.
+                if est is not None and len(est.target_ids) < 2 and not np.isfinite(continuity(f, est.pose)):
+                    est = None
+            if est is not None:
+                bundle.set_pose(f, est.pose)
+                weak[f] = len(est.target_ids) < 2
+                # Targets that do not fit the others here (misidentified?) are not used in
+                # this frame; the last rounds of the bundle adjustment may take them back.
+                rejected = set(est.rejected_ids)
+                for v, ob in zip(views, obs, strict=True):
+                    if ob.id in rejected:
+                        usable[v] = False
+                added += 1
                 continue
-            try:
-                est = nonlinear(obs, bundle.camera, outlier_px=max(outlier_px, 4.0))
-            except (PoseUndetermined, cv2.error):
+            if min_targets > 1:
                 continue
-            # The map is still coarse while it grows: accept a loose fit, BA tightens it.
-            if est.rms_px > (2 if lens_refined else 10) * outlier_px:
+            # One card at a time (a frame with one placed target, or two that disagree):
+            # the card whose pose fits the camera's motion best, the others set aside.
+            found = [(continuity(f, pose), k, pose) for k, ob in enumerate(obs)
+                     if (pose := single_target_pose(f, ob)) is not None]
+            if not found:
                 continue
-            bundle.set_pose(f, est.pose)
-            weak[f] = False
+            _, k, pose = min(found, key=lambda c: c[0])
+            bundle.set_pose(f, pose)
+            weak[f] = True
+            for j, v in enumerate(views):
+                if j != k:
+                    usable[v] = False
             added += 1
         return added
 
@@ -863,7 +1060,6 @@ def survey(
     prior = None
     if card_prior_m is not None:
         prior = (marker_size_m, float(card_prior_m))
-    n_rejected = 0
     info: dict[str, Any] = {}
     clean = False
     if not fixed and bundle.registered().sum() < 10:
@@ -872,7 +1068,7 @@ def survey(
         fixed = True
         warnings.append("too few frames could be registered to calibrate the lens: the initial focal length "
                         "estimate was kept and no distortion was fitted")
-    for round_ in range(4):
+    for round_ in range(5):
         report("bundle", 0.5 + 0.1 * round_)
         bundle, info = bundle_adjust(bundle, tracks, usable.repeat(4), free_intrinsics=not fixed,
                                      card_prior=prior, max_iterations=100)
@@ -881,21 +1077,24 @@ def survey(
         attempted.clear()
         register_frames(1, attempted)
         grew = place_targets() > 0 or int(bundle.registered().sum()) > before
-        obs_all = np.flatnonzero(usable.repeat(4))
+        # Every view of a registered frame and a placed target is judged, also those
+        # set aside while the map grew: a view that fits now is taken back.
+        judged = bundle.registered()[view_frame] & bundle.placed()[view_target * 4]
+        obs_all = np.flatnonzero(judged.repeat(4))
         err = _errors(bundle, tracks, obs_all)
         view_err = np.zeros(len(usable))
-        np.maximum.at(view_err, obs_all // 4, np.nan_to_num(err, nan=0.0))
-        finite = err[np.isfinite(err)]
+        np.maximum.at(view_err, obs_all // 4, np.nan_to_num(err, nan=np.inf))
+        finite = err[np.isfinite(err) & usable[obs_all // 4]]
         # Rayleigh: the median 2D error is 1.1774 sigma.
         sigma = float(np.median(finite)) / 1.1774 if len(finite) else 1.0
         threshold = max(outlier_px, 8 * sigma)
         # A whole view goes (a misidentified target moves all its 4 discs).
-        bad = usable & (view_err > threshold)
-        if not bad.any() and not grew:
+        bad = judged & (view_err > threshold)
+        readmit = judged & ~usable & ~bad
+        if not (bad & usable).any() and not readmit.any() and not grew:
             clean = True
             break
-        usable &= ~bad
-        n_rejected += int(bad.sum())
+        usable = (usable & ~bad) | readmit
         # A frame left with no usable view, or a target with none: unregister / unplace.
         for f in np.flatnonzero(bundle.registered()):
             if not usable[views_of_frame[f]].any():
@@ -915,6 +1114,7 @@ def survey(
     report("scale", 0.9)
     registered = bundle.registered()
     used_views = usable & registered[view_frame] & bundle.placed()[view_target * 4]
+    n_rejected = int((~usable & registered[view_frame] & bundle.placed()[view_target * 4]).sum())
     n_views = np.bincount(view_target[used_views], minlength=n_targets)
     surveyed = np.flatnonzero((n_views >= 2) & np.isfinite(bundle.X[0::4, 0]))
     if len(surveyed) == 0:
