@@ -663,18 +663,28 @@ _CLAIM_SCORE = 0.0
 def _clash_pairs(rows: np.ndarray, claims: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (i, j), i < j (rows in priority order), where i suppresses j: j's centre
     lies inside i's disc and, unless i claims its disc (`claims`, default all), i's
-    centre inside j's too. A k-d tree finds the few close pairs; comparing all pairs of a
-    few hundred windows would cost more than stage 2."""
+    centre inside j's too. A sweep along x finds the few close pairs (every row looks
+    within its own radius); comparing all pairs of a few hundred windows would cost
+    more than stage 2, and a k-d tree's fixed search radius is set by the largest disc."""
     n = rows.shape[0]
     empty = np.zeros(0, np.intp)
     if n < 2:
         return empty, empty
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(rows[:, :2]).query_pairs(float(rows[:, 2].max()), output_type="ndarray")
-    if pairs.size == 0:
+    x = rows[:, 0]
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    r = rows[order, 2]
+    lo = np.searchsorted(xs, xs - r, side="left")
+    hi = np.searchsorted(xs, xs + r, side="right")
+    cnt = hi - lo
+    total = int(cnt.sum())
+    if total == 0:
         return empty, empty
-    a, b = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    # (s, t): sorted position s looks at t within its radius along x; s suppresses
+    a = order[np.repeat(np.arange(n), cnt)]
+    b = order[np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)]
+    ahead = a < b  # the suppressor comes first in priority (also drops a == b)
+    a, b = a[ahead], b[ahead]
     d = rows[a, :2] - rows[b, :2]
     reach = rows[a, 2] if claims is None else np.where(claims[a], rows[a, 2], np.minimum(rows[a, 2], rows[b, 2]))
     close = np.einsum("ij,ij->i", d, d) < reach * reach
