@@ -117,7 +117,7 @@ def test_misidentified_views_are_removed() -> None:
 
 @pytest.mark.xfail(strict=True, reason="known weakness: the same misread code in consecutive frames, before "
                    "the real target is surveyed, places that target wrongly (consistent wrong views) and the "
-                   "growth does not recover")
+                   "growth does not recover (whether it does depends on the growth order)")
 def test_wrongly_identified_card_in_later_frames_is_removed() -> None:
     """A misread code in the middle of the video, in frames with other targets."""
     scene, _ = _room()
