@@ -171,3 +171,27 @@ def test_bad_uploads_are_refused_and_leave_nothing(client: TestClient, settings,
     uploads = settings.data_dir / "uploads"
     assert not uploads.exists() or not any(uploads.iterdir())
     assert client.get(f"/environments/{env}").json()["has_map"] is False
+
+
+def test_survey_from_a_set_of_images(client: TestClient, room, tmp_path: Path) -> None:
+    scene, _, video = room
+    path = tmp_path / "room.mp4"
+    path.write_bytes(video)
+    capture = cv2.VideoCapture(str(path))
+    files = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        if len(files) < 45 and int(capture.get(cv2.CAP_PROP_POS_FRAMES)) % 2 == 0:
+            files.append(("images", (f"f{len(files):03d}.jpg", cv2.imencode(".jpg", frame)[1].tobytes(), "image/jpeg")))
+    capture.release()
+    env = _environment(client)
+    reply = client.post(f"/environments/{env}/survey", files=files)
+    assert reply.status_code == 202, reply.text
+    body = _wait(client, reply.json()["id"])
+    assert body["status"] == "succeeded", body
+    assert body["result"]["frames_used"] == 45 and body["result"]["n_registered"] >= 30
+    document = client.get(f"/environments/{env}/map").json()
+    assert abs(document["camera"]["K"][0][0] - 700.0) / 700.0 < 0.01
+    assert {t["id"] for t in document["targets"]} <= {t.id for t in scene.targets}
