@@ -16,8 +16,10 @@ Pipeline of `assemble_targets`:
    is used to sample a fixed set of card points (discs, the white card around and
    between them, the white gap around the code, the code cells) from a pyramid level
    matched to the card's size (no aliasing), all proposals at once with one
-   `cv2.remap`. Thresholds on the normalised measurements were set on simulator data
-   (bench/bench_targets.py prints the distributions).
+   `cv2.remap` (the quick check's 16 points ride along in the same pass). Thresholds on
+   the normalised measurements were set on simulator data (bench/bench_targets.py prints
+   the distributions); before refinement the disc levels are judged loosely (a
+   candidate may sit half a disc radius off), after it every check is strict.
 3. Subpixel centres (`refine_centres`): background-corrected intensity-weighted
    centroid in a window that is the image of a circle around the disc (through the
    homography of the four discs), minus the perspective bias of the ellipse centroid
@@ -110,6 +112,11 @@ MAX_WHITE_SPREAD = 0.35  # P90 - P10 of the white samples between discs and in t
 NOISE_SPREAD_GREY = 15.0  # or this many grey levels: sensor noise on a dim card (sigma up to ~6)
 MAX_DISC_LEVEL = 0.35  # mean of each disc's samples
 MAX_DISC_SPREAD = 0.30  # darkest vs lightest disc
+#: The same two before refinement: a candidate up to ~0.55 disc radii off its disc
+#: (blur, a disc merged with its neighbourhood) puts some disc samples on the white; the
+#: refined card is held to the strict values.
+MAX_DISC_LEVEL_COARSE = 0.6
+MAX_DISC_SPREAD_COARSE = 0.6
 MAX_DISC_SAMPLE = 0.55  # lightest single disc sample, once the centres are refined
 WHITE_LOW_PERCENTILE = 10.0
 MIN_WHITE_LOW = 0.45  # that percentile of the white samples
@@ -122,13 +129,19 @@ MIN_VALID_FRACTION = 0.9  # of the card's samples inside the image
 #: overlapping card or a half-hidden one shows 0.14 and more.
 MAX_RADIUS_SPREAD = 0.12
 #: Largest move of a disc centre in refinement, in predicted disc radii (2 px at least).
-MAX_REFINE_SHIFT = 0.6
+MAX_REFINE_SHIFT = 0.8
 
 #: Subpixel refinement: window (in disc radii, card units) and white ring.
 REFINE_WINDOW = 1.1
 REFINE_TAPER = 0.1
 REFINE_RING = (1.15, 1.4)
-REFINE_ITERATIONS = 3
+REFINE_ITERATIONS = 2
+#: Up to this many more while the last one still moved a centre by `REFINE_SETTLED` px
+#: or more (a candidate far off its disc); the white ring is measured again while the
+#: last move exceeded `REFINE_WHITE_AGAIN` px (else the first pass's median is kept).
+REFINE_EXTRA_ITERATIONS = 3
+REFINE_SETTLED = 0.1
+REFINE_WHITE_AGAIN = 0.5
 REFINE_CONVERGED = 0.01  # px: stop early when no centre moved more
 REFINE_MAX_HALF = 16  # larger windows are measured on a pyramid level
 
@@ -172,7 +185,7 @@ def homographies(quads: np.ndarray) -> np.ndarray:
 
 def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Map card points `pts` (M, 2) through every homography (P, 3, 3) -> (P, M, 2)."""
-    x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
+    x = np.matmul(np.concatenate([pts, np.ones((pts.shape[0], 1))], axis=1), hs.transpose(0, 2, 1))
     w = x[..., 2:3]
     w = np.where(np.abs(w) > 1e-12, w, 1e-12)
     return x[..., :2] / w
@@ -180,22 +193,22 @@ def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 def _ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
     """Centres (P, K, 2) of the image ellipses of card circles (`centres` (K, 2),
-    `radius`) under each homography: the image conic is H^-T C H^-1."""
-    hinv = np.linalg.inv(hs)  # (P, 3, 3)
-    k = centres.shape[0]
-    circles = np.zeros((k, 3, 3))
-    circles[:, 0, 0] = circles[:, 1, 1] = 1.0
-    circles[:, 0, 2] = circles[:, 2, 0] = -centres[:, 0]
-    circles[:, 1, 2] = circles[:, 2, 1] = -centres[:, 1]
-    circles[:, 2, 2] = (centres**2).sum(axis=1) - radius * radius
-    conics = np.einsum("pji,kjl,plm->pkim", hinv, circles, hinv)  # H^-T C H^-1
-    a = conics[..., :2, :2]
-    b = conics[..., :2, 2]
-    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-    cx = -(a[..., 1, 1] * b[..., 0] - a[..., 0, 1] * b[..., 1]) / det
-    cy = -(-a[..., 1, 0] * b[..., 0] + a[..., 0, 0] * b[..., 1]) / det
-    return np.stack([cx, cy], axis=-1)
+    `radius`) under each homography. The centre of a conic is the pole of the line at
+    infinity; pulled back to the card, that line is the homography's third row
+    (g, h, 1), and the pole of it with respect to the circle is the card point
+    ``c - radius**2 (g, h) / (g cx + h cy + 1)``: its image is the ellipse centre."""
+    g = hs[:, 2, 0, None]
+    h = hs[:, 2, 1, None]
+    w = g * centres[None, :, 0] + h * centres[None, :, 1] + hs[:, 2, 2, None]  # (P, K)
+    w = np.where(np.abs(w) > 1e-12, w, 1e-12)
+    k = (radius * radius) / w
+    px = centres[None, :, 0] - k * g
+    py = centres[None, :, 1] - k * h
+    x = hs[:, None, 0, 0] * px + hs[:, None, 0, 1] * py + hs[:, None, 0, 2]
+    y = hs[:, None, 1, 0] * px + hs[:, None, 1, 1] * py + hs[:, None, 1, 2]
+    z = hs[:, None, 2, 0] * px + hs[:, None, 2, 1] * py + hs[:, None, 2, 2]
+    z = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    return np.stack([x / z, y / z], axis=-1)
 
 
 # --------------------------------------------------------------------------------------
@@ -537,29 +550,33 @@ def _sample(pyr: _Pyramid, hs: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray,
     """Bilinear samples (P, M) float32 of card points `pts` through homographies `hs`,
     each quadrilateral from the pyramid level whose pixel matches the sample spacing
     (so a big card is not aliased), and a mask (P, M) of samples inside the image."""
-    xy = _apply(hs, pts)  # (P, M, 2) full-resolution pixels
     p = hs.shape[0]
-    out = np.zeros((p, pts.shape[0]), np.float32)
-    inside = np.zeros((p, pts.shape[0]), bool)
     if p == 0:
-        return out, inside
+        return np.zeros((0, pts.shape[0]), np.float32), np.zeros((0, pts.shape[0]), bool)
+    xy = _apply(hs, pts)  # (P, M, 2) full-resolution pixels
     gray = pyr.levels[0]
     h, w = gray.shape
-    # card side in pixels: sqrt(|det|) of the local linear map at the card centre
-    jac = _jacobians(hs, np.array([[0.5, 0.5]]))[:, 0]
-    side = np.sqrt(np.abs(jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]))
-    spacing = side / SAMPLES_PER_CARD
+    # card side in pixels: sqrt(|det J|) at the card centre, det J = det H / w**3
+    wc = 0.5 * (hs[:, 2, 0] + hs[:, 2, 1]) + hs[:, 2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spacing = np.sqrt(np.abs(np.linalg.det(hs) / (wc * wc * wc))) / SAMPLES_PER_CARD
+    spacing = np.where(np.isfinite(spacing), spacing, 1.0)
     level = np.clip(np.floor(np.log2(np.maximum(spacing, 1.0))), 0, pyr.max_level).astype(int)
     finite = np.isfinite(xy).all(axis=-1)
-    inside = finite & (xy[..., 0] >= -0.5) & (xy[..., 0] <= w - 0.5) & (xy[..., 1] >= -0.5) & (xy[..., 1] <= h - 0.5)
-    xy = np.where(finite[..., None], xy, -10.0)
-    for lv in np.unique(level):
+    x, y = xy[..., 0], xy[..., 1]
+    inside = finite & (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    xy = np.where(finite[..., None], xy, -10.0).astype(np.float32)
+    lv0 = int(level[0])
+    if (level == lv0).all():
+        if lv0:
+            xy *= np.float32(0.5**lv0)
+        out = cv2.remap(pyr.get(lv0), xy[..., 0], xy[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(p, pts.shape[0]).astype(np.float32), inside
+    out = np.zeros((p, pts.shape[0]), np.float32)
+    for lv in np.unique(level).tolist():
         rows = np.flatnonzero(level == lv)
-        img = pyr.get(int(lv))
-        scale = 2.0**lv
-        m = (xy[rows] / scale).astype(np.float32)
-        vals = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        out[rows] = vals
+        m = xy[rows] * np.float32(0.5**lv)
+        out[rows] = cv2.remap(pyr.get(lv), m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out, inside
 
 
@@ -584,18 +601,22 @@ QUICK_WHITE = 0.5
 
 def _quick_check(pyr: _Pyramid, hs: np.ndarray) -> np.ndarray:
     """bool (P,): could this be a card at all? 16 samples per proposal."""
-    vals, inside = _sample(pyr, hs, _QUICK_POINTS)
+    return _quick_from(*_sample(pyr, hs, _QUICK_POINTS))
+
+
+def _quick_from(vals: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """`_quick_check` of the samples (P, 16) of `_QUICK_POINTS` and their mask."""
     disc = vals[:, :4]
     black = disc.mean(axis=1)
-    white = np.median(vals[:, 4:], axis=1)
+    wv = np.sort(vals[:, 4:], axis=1)
+    white = 0.5 * (wv[:, 5] + wv[:, 6])  # median of 12
     c = white - black
     ok = (c >= MIN_CONTRAST_GREY) & inside[:, :4].all(axis=1)
     cn = np.maximum(c, 1e-3)[:, None]
-    ok &= ((disc - black[:, None]) / cn).max(axis=1) <= QUICK_DISC
+    ok &= (disc.max(axis=1) - black) <= QUICK_DISC * cn[:, 0]
     whites = np.where(inside[:, 4:], (vals[:, 4:] - black[:, None]) / cn, 1.0)
-    ok &= np.sort(whites, axis=1)[:, 1] >= QUICK_WHITE
+    ok &= np.partition(whites, 1, axis=1)[:, 1] >= QUICK_WHITE
     return ok
-
 
 
 @dataclass(frozen=True, eq=False)
@@ -618,12 +639,14 @@ class _Measures:
     cell_lo: np.ndarray  # (P, n*n) darkest sub-sample of each cell
     cell_hi: np.ndarray  # (P, n*n) lightest sub-sample of each cell
 
-    def passed(self) -> np.ndarray:
+    def passed(self, coarse: bool = False) -> np.ndarray:
+        """All checks; `coarse`: before refinement, looser on the disc levels (a
+        candidate may sit half a radius off its disc centre)."""
         return (
             (self.contrast >= MIN_CONTRAST_GREY)
             & (self.uniformity <= np.maximum(MAX_WHITE_SPREAD, NOISE_SPREAD_GREY / np.maximum(self.contrast, 1e-3)))
-            & (self.disc_level <= MAX_DISC_LEVEL)
-            & (self.disc_spread <= MAX_DISC_SPREAD)
+            & (self.disc_level <= (MAX_DISC_LEVEL_COARSE if coarse else MAX_DISC_LEVEL))
+            & (self.disc_spread <= (MAX_DISC_SPREAD_COARSE if coarse else MAX_DISC_SPREAD))
             & (self.white_low >= MIN_WHITE_LOW)
             & (self.gap_low >= MIN_GAP_LEVEL)
             & (self.edge_level >= MIN_EDGE_LEVEL)
@@ -648,6 +671,17 @@ def _measure(pyr: _Pyramid, hs: np.ndarray, n: int) -> _Measures:
     np.percentile, which cost ~50 us a call."""
     plan = _plan(n)
     vals, inside = _sample(pyr, hs, plan.points)
+    return _measures_from(vals, inside, plan)
+
+
+@functools.cache
+def _plan_and_quick(n: int) -> np.ndarray:
+    """The sample points of `_plan(n)` followed by `_QUICK_POINTS`."""
+    return np.concatenate([_plan(n).points, _QUICK_POINTS])
+
+
+def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan) -> _Measures:
+    """`_measure` of the samples (P, M) of `plan.points` and their mask."""
     p = vals.shape[0]
     disc_vals = vals[:, plan.disc]  # (P, 4, D)
     black = _quantile_sorted(np.sort(disc_vals.reshape(p, -1), axis=1), 0.5)
@@ -917,7 +951,9 @@ def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE
     perspective is not the projection of the disc's centre; that offset follows exactly
     from the homography (the image conic of the circle) and is subtracted
     (`correct_perspective`). Iterated `iterations` times, each with the homography of
-    the previous centres. Radii: sqrt(dark area / pi), the area being the summed
+    the previous centres, and up to `REFINE_EXTRA_ITERATIONS` more while centres still
+    move (a candidate far off its disc); the ring's white level is kept from the
+    previous pass once the centres have settled. Radii: sqrt(dark area / pi), the area being the summed
     darkness over the disc-vs-white contrast.
     """
     gray = _as_gray(gray)
@@ -929,27 +965,50 @@ def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE
         return cur, radii
     centroid = cur.copy()  # the image-ellipse centres (what the window is centred on)
     reach = REFINE_WINDOW + REFINE_TAPER
-    for _ in range(max(1, iterations)):
+    white = np.full((t, 4), np.nan)  # ring medians, measured again only while centres move
+    level = None
+    moved = np.inf
+    for it in range(max(1, iterations) + REFINE_EXTRA_ITERATIONS):
+        if it >= max(1, iterations) and moved < REFINE_SETTLED:
+            break
         hs = homographies(cur)
         jac = _jacobians(hs, DISC_CENTRES)  # (T, 4, 2, 2) image offset per card offset
         det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
         if not (np.isfinite(det).all() and (np.abs(det) > 1e-9).all()):
             break
-        # Half-extent of each window along x and y: reach * R * |row of J|.
-        ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
-                                                       jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2)).max(axis=1)
-        level = np.clip(np.ceil(np.log2(np.maximum((ext + 1.0) / REFINE_MAX_HALF, 1.0))), 0,
-                        pyr.max_level).astype(int)
-        new_centroid = centroid.copy()
-        total = np.zeros((t, 4))
-        contrast = np.ones((t, 4))
-        for lv in np.unique(level).tolist():
-            rows = np.flatnonzero(level == lv)
+        if level is None:
+            # Half-extent of each window along x and y: reach * R * |row of J|; the level
+            # is chosen once.
+            ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
+                                                           jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2)).max(axis=1)
+            level = np.clip(np.ceil(np.log2(np.maximum((ext + 1.0) / REFINE_MAX_HALF, 1.0))), 0,
+                            pyr.max_level).astype(int)
+            levels = np.unique(level).tolist()
+            groups = [(lv, None if len(levels) == 1 else np.flatnonzero(level == lv)) for lv in levels]
+        # The white ring is measured around the current centroid: again while the centres
+        # still move (a candidate far off its disc puts the first ring partly on it).
+        fresh = moved > REFINE_WHITE_AGAIN
+        if len(groups) == 1:
+            lv = groups[0][0]
             scale = 2.0**lv
-            c, tot, con = _centroid_step(pyr.get(lv), centroid[rows] / scale, jac[rows] / scale, reach)
-            new_centroid[rows] = c * scale
-            total[rows] = tot * scale * scale
-            contrast[rows] = con
+            c, tot, con, wh = _centroid_step(pyr.get(lv), centroid / scale if lv else centroid,
+                                             jac / scale if lv else jac, reach, None if fresh else white)
+            new_centroid = c * scale if lv else c
+            total = tot * (scale * scale)
+            contrast = con
+            white = wh
+        else:
+            new_centroid = centroid.copy()
+            total = np.zeros((t, 4))
+            contrast = np.ones((t, 4))
+            for lv, rows in groups:
+                scale = 2.0**lv
+                c, tot, con, wh = _centroid_step(pyr.get(lv), centroid[rows] / scale, jac[rows] / scale, reach,
+                                                 None if fresh else white[rows])
+                new_centroid[rows] = c * scale
+                total[rows] = tot * scale * scale
+                contrast[rows] = con
+                white[rows] = wh
         good = total > 1e-6
         centroid = np.where(good[..., None], new_centroid, centroid)
         new = centroid
@@ -958,13 +1017,14 @@ def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE
             new = centroid - bias
         prev, cur = cur, np.where(good[..., None], new, cur)
         radii = np.sqrt(np.maximum(total / np.maximum(contrast, 1e-3), 0.0) / np.pi)
-        if np.abs(cur - prev).max() < REFINE_CONVERGED:
+        moved = float(np.abs(cur - prev).max())
+        if moved < REFINE_CONVERGED:
             break
     return cur, radii
 
 
-def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach: float
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach: float,
+                   white: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One centroid update of discs at `centroid` (T, 4, 2) in the pixels of `img`, with
     `jac` (T, 4, 2, 2) the image offset per card offset at each disc: (new centroids,
     summed darkness (T, 4), white - black (T, 4))."""
@@ -992,8 +1052,9 @@ def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach
     u = a00 * dx + a01 * dy
     v = a10 * dx + a11 * dy
     rho2 = u * u + v * v  # squared distance from the centroid in disc radii, on the card
-    ring = valid & (rho2 >= f32(REFINE_RING[0] ** 2)) & (rho2 <= f32(REFINE_RING[1] ** 2))
-    white = _masked_median_u8(pix8.reshape(t, 4, -1), ring.reshape(t, 4, -1))
+    if white is None:
+        ring = valid & (rho2 >= f32(REFINE_RING[0] ** 2)) & (rho2 <= f32(REFINE_RING[1] ** 2))
+        white = _masked_median_u8(pix8.reshape(t, 4, -1), ring.reshape(t, 4, -1))
     pix = pix8.astype(f32)
     inner = valid & (rho2 <= f32(0.25))
     black = (pix * inner).sum(axis=(2, 3)) / np.maximum(inner.sum(axis=(2, 3)), 1)
@@ -1012,7 +1073,7 @@ def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach
     mx = (weight.sum(axis=2) * dx[..., 0, :]).sum(axis=-1) / safe
     my = (weight.sum(axis=3) * dy[..., :, 0]).sum(axis=-1) / safe
     new = centroid + np.stack([mx, my], -1)
-    return np.where(good[..., None], new, centroid), np.where(good, total, 0.0), white - black
+    return np.where(good[..., None], new, centroid), np.where(good, total, 0.0), white - black, white
 
 
 def _masked_median_u8(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -1112,13 +1173,17 @@ def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEF
     pts = cand[quads, :2]  # (P, 4, 2)
     pyr = _Pyramid(gray, built=pyramid)
     hs = homographies(pts)
-    quick = np.flatnonzero(_quick_check(pyr, hs))
+    # one sampling pass: the quick check's 16 points and the full plan
+    plan = _plan(fam.cells)
+    vals, inside = _sample(pyr, hs, _plan_and_quick(fam.cells))
+    n_plan = plan.points.shape[0]
+    quick = np.flatnonzero(_quick_from(vals[:, n_plan:], inside[:, n_plan:]))
     if quick.size == 0:
         clock.lap("verify", quick=0)
         return clock.done([])
-    quads, pts, hs = quads[quick], pts[quick], hs[quick]
-    m = _measure(pyr, hs, fam.cells)
-    keep = np.flatnonzero(m.passed())
+    quads, pts = quads[quick], pts[quick]
+    m = _measures_from(vals[quick, :n_plan], inside[quick, :n_plan], plan)
+    keep = np.flatnonzero(m.passed(coarse=True))
     clock.lap("verify", quick=quick.size, verified=keep.size)
     if keep.size == 0:
         return clock.done([])
@@ -1133,7 +1198,8 @@ def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEF
     # half hidden by another card, or a blob that is no disc, has light ones).
     ok &= m.disc_max <= MAX_DISC_SAMPLE
     # Refinement must stay on its candidate's disc (not be pulled to a neighbour):
-    # within 60% of the disc radius the homography predicts.
+    # within 80% of the disc radius the homography predicts (a candidate may sit ~0.6
+    # radii off its disc).
     moved = np.hypot(*(refined - pts).transpose(2, 0, 1))
     ok &= (moved <= np.maximum(2.0, MAX_REFINE_SHIFT * _predicted_radii(hs))).all(axis=1)
     # Four points fix a homography exactly, so a disc of another card (an overlapping
