@@ -275,3 +275,35 @@ def test_workspace_reuse_does_not_leak_between_frames(classifier: DiscClassifier
     s1 = cand.stage1_windows(a, classifier, workspace=cand._Workspace())
     s2 = cand.stage1_windows(a, classifier)
     np.testing.assert_array_equal(s1.windows, s2.windows)
+
+
+def _reference_blob_scores(padded: np.ndarray) -> np.ndarray:
+    """Stage 1a written plainly (two normalised float32 box filters): what `blob_scores`
+    computes through an integral image and reused buffers."""
+    se = np.ones((cand.WINDOW, cand.WINDOW), np.uint8)
+    h, w = padded.shape
+    dil = cv2.dilate(padded, se, anchor=(6, 6))
+    ero = cv2.erode(padded, se, anchor=(6, 6))
+    tophat = cv2.subtract(cv2.erode(dil, se, anchor=(5, 5)), padded)
+    centre = cv2.boxFilter(tophat, cv2.CV_32F, (4, 4))[6 : h - 5, 6 : w - 5]
+    window = cv2.boxFilter(tophat, cv2.CV_32F, (12, 12))[6 : h - 5, 6 : w - 5]
+    den = cv2.subtract(dil, ero)[6 : h - 5, 6 : w - 5].astype(np.float32) + np.float32(2.0)
+    return cv2.divide(centre - window, den)
+
+
+def test_blob_scores_match_the_plain_formula_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    ws = cand._Workspace()
+    for _ in range(12):
+        h, w = (int(s) for s in rng.integers(24, 260, 2))
+        image = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), float(rng.uniform(0.3, 3)))
+        for level in cand.pyramid(image):
+            padded = cand.pad_level(level)
+            expected = _reference_blob_scores(padded)
+            np.testing.assert_array_equal(cand.blob_scores(padded, ws), expected)
+            np.testing.assert_array_equal(cand.blob_scores(padded), expected)
+            got = cand.local_maxima(cand.blob_scores(padded, ws).copy(), 0.16, ws)
+            mask = cv2.compare(expected, cv2.max(cv2.dilate(expected, None), 0.16 + 1e-6), cv2.CMP_GE)
+            ys, xs = np.nonzero(mask)
+            np.testing.assert_array_equal(got[0], ys)
+            np.testing.assert_array_equal(got[1], xs)

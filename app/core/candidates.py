@@ -160,6 +160,7 @@ class DiscClassifier:
         # Column sums of W1, for `_screen_raw`; and prototypes split by class once
         # (stage 2 needs the nearest of each class).
         object.__setattr__(self, "_w1_sum", w1.sum(axis=0))
+        object.__setattr__(self, "_w1_ext", np.ascontiguousarray(np.concatenate([w1, np.ones((_DIM, 1), np.float32)], 1)))
         object.__setattr__(self, "_pos", np.ascontiguousarray(protos[labels == 1].T))
         object.__setattr__(self, "_neg", np.ascontiguousarray(protos[labels == 0].T))
 
@@ -248,12 +249,12 @@ class _Workspace:
         self._buffers: dict[tuple[str, tuple[int, ...], str], np.ndarray] = {}
 
     def get(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-        key = (name, tuple(int(s) for s in shape), np.dtype(dtype).str)
+        key = (name, shape, dtype)  # callers pass tuples of ints and numpy scalar types
         buf = self._buffers.get(key)
         if buf is None:
             if len(self._buffers) > 256:  # many image sizes: start again rather than grow
                 self._buffers.clear()
-            buf = self._buffers[key] = np.empty(key[1], dtype)
+            buf = self._buffers[key] = np.empty(tuple(int(s) for s in shape), dtype)
         return buf
 
     def rows(self, name: str, n: int, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
@@ -352,16 +353,27 @@ def blob_scores(padded: np.ndarray, workspace: _Workspace | None = None) -> np.n
     ero = cv2.erode(padded, _SE, dst=ws.get("ero", key, np.uint8), anchor=(_HALF, _HALF))
     tophat = cv2.erode(dil, _SE, dst=ws.get("top", key, np.uint8), anchor=(_HALF - 1, _HALF - 1))
     cv2.subtract(tophat, padded, dst=tophat)
-    # Even box sizes with the default anchor are all centred on the same half pixel.
-    centre = cv2.boxFilter(tophat, cv2.CV_32F, (4, 4), dst=ws.get("box4", key, np.float32))
-    window = cv2.boxFilter(tophat, cv2.CV_32F, (WINDOW, WINDOW), dst=ws.get("box12", key, np.float32))
+    # Window sums of the top-hat from its integral image (exact int32): the 12x12 window
+    # with top-left (y, x) and its central 4x4 (rows and columns 4..7), rows first (a
+    # subtraction of shifted rows of the integral), then columns. Stage 1a is memory
+    # bound, so three image-sized buffers serve the eight steps: a row step may write
+    # over the rows it reads (each output row lies before the rows it reads, in memory
+    # order), an element-wise step over its own input; a column step may not (OpenCV
+    # redoes the last SIMD block of a row).
+    integral = cv2.integral(tophat, sum=ws.get("int", (h + 1, w + 1), np.int32), sdepth=cv2.CV_32S)
+    oh, ow = h - WINDOW + 1, w - WINDOW + 1
+    strip = ws.get("strip", (oh, w + 1), np.int32)
+    cv2.subtract(integral[WINDOW:], integral[:oh], dst=strip)
+    sum12 = cv2.subtract(strip[:, WINDOW:], strip[:, :ow], dst=ws.get("sum12", (oh, ow), np.int32))
+    cv2.subtract(integral[8 : h - 3], integral[4 : h - 7], dst=integral[:oh])
+    sum4 = cv2.subtract(integral[:oh, 8 : w - 3], integral[:oh, 4 : w - 7], dst=strip[:, :ow])
+    # centre mean minus window mean, as float32: bit-identical to the difference of two
+    # normalised float32 box filters (tests/test_candidates.py checks it)
+    num = cv2.addWeighted(sum4, 1.0 / 16.0, sum12, -1.0 / _DIM, 0.0, dst=sum12.view(np.float32), dtype=cv2.CV_32F)
     contrast = cv2.subtract(dil, ero, dst=ero)
-    rows, cols = slice(_HALF, h - _HALF + 1), slice(_HALF, w - _HALF + 1)
-    out_shape = (h - WINDOW + 1, w - WINDOW + 1)
-    num = cv2.subtract(centre[rows, cols], window[rows, cols], dst=ws.get("num", out_shape, np.float32))
-    den = ws.get("den", out_shape, np.float32)
-    np.add(contrast[rows, cols], np.float32(_RANGE_EPS), out=den)
-    return cv2.divide(num, den, dst=ws.get("score", out_shape, np.float32))
+    den = cv2.add(contrast[_HALF : h - _HALF + 1, _HALF : w - _HALF + 1], _RANGE_EPS,
+                  dst=sum4.view(np.float32), dtype=cv2.CV_32F)
+    return cv2.divide(num, den, dst=num)
 
 
 def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | None = None
@@ -369,7 +381,9 @@ def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | No
     """(ys, xs) int arrays of 3x3 local maxima of `score` strictly above `threshold`,
     in row-major order."""
     ws = workspace if workspace is not None else _Workspace()
-    dil = cv2.dilate(score, None, dst=ws.get("lmdil", score.shape, np.float32))
+    # (into the buffer `blob_scores` used for the denominator: one image-sized buffer less)
+    h, w = score.shape
+    dil = cv2.dilate(score, None, dst=ws.get("strip", (h, w + WINDOW), np.int32)[:, :w].view(np.float32))
     # score >= max(neighbourhood max, threshold + tiny): local maximum and above threshold.
     cv2.max(dil, float(threshold) + 1e-6, dst=dil)
     mask = cv2.compare(score, dil, cv2.CMP_GE, dst=ws.get("lmmask", score.shape, np.uint8))
@@ -416,8 +430,13 @@ def extract_windows(padded: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.nd
     """(N, 12, 12) uint8 copies of the windows with top-left ``(ys, xs)`` of a padded level."""
     h, w = padded.shape
     sy, sx = padded.strides
-    view = np.lib.stride_tricks.as_strided(padded, (h - WINDOW + 1, w - WINDOW + 1, WINDOW, WINDOW),
-                                           (sy, sx, sy, sx), writeable=False)
+    # A read-only strided view of every window (np.ndarray directly: as_strided costs
+    # ~30 us of Python per call).
+    shape = (h - WINDOW + 1, w - WINDOW + 1, WINDOW, WINDOW)
+    if padded.dtype == np.uint8 and padded.flags.c_contiguous:
+        view = np.ndarray(shape, np.uint8, padded, 0, (sy, sx, sy, sx))
+    else:
+        view = np.lib.stride_tricks.as_strided(padded, shape, (sy, sx, sy, sx), writeable=False)
     return view[ys, xs]
 
 
@@ -450,10 +469,13 @@ def _screen_raw(raw: np.ndarray, classifier: DiscClassifier, workspace: _Workspa
     else:
         w = workspace.rows("screen_in", flat.shape[0], (_DIM,), np.float32)
         np.copyto(w, flat, casting="unsafe")
-    mean = w.sum(axis=1) / np.float32(_DIM)
+    # One product gives x W1 and, in its last column (W1 extended by a column of ones),
+    # the window sums (exact: integers below 2**24).
+    product = w @ classifier._w1_ext  # type: ignore[attr-defined]
+    hidden = product[:, :-1]
+    mean = product[:, -1] / np.float32(_DIM)
     sq = np.einsum("ij,ij->i", w, w) - np.float32(_DIM) * mean * mean
     inv = 1.0 / np.maximum(np.sqrt(np.maximum(sq, 0.0)), np.float32(_NORM_EPS))
-    hidden = w @ classifier.screen_w1
     hidden -= mean[:, None] * classifier._w1_sum[None, :]  # type: ignore[attr-defined]
     hidden *= inv[:, None]
     hidden += classifier.screen_b1
