@@ -66,7 +66,9 @@ class Pose:
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise ValueError("Pose R and t must be finite")
         # Plain max/det rather than np.allclose: poses are built per frame on the hot path.
-        if np.abs(R @ R.T - _EYE3).max() > 1e-6 or np.linalg.det(R) < 0:
+        det = (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+               + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]))
+        if np.abs(R @ R.T - _EYE3).max() > 1e-6 or det < 0:
             raise ValueError("Pose R must be a rotation matrix")
         object.__setattr__(self, "R", _readonly(R))
         object.__setattr__(self, "t", _readonly(t))

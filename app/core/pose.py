@@ -246,12 +246,15 @@ def _fit(camera: Camera, world: np.ndarray, image: np.ndarray, spread: np.ndarra
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     for rvec, tvec in starts:
         rvec, tvec = cv2.solvePnPRefineLM(world, image, camera.K, camera.dist, rvec.copy(), tvec.copy())
-        projected, _ = cv2.projectPoints(world, rvec, tvec, camera.K, camera.dist)
-        cost = float(((projected.reshape(-1, 2) - image) ** 2).sum())
         # A pose with points behind the camera is no pose, however well it "fits".
         R, _ = cv2.Rodrigues(rvec)
-        if ((world @ R.T)[:, 2] + tvec.ravel()[2] <= 0).any():
+        if ((world @ R[2]) + tvec.ravel()[2] <= 0).any():
             continue
+        if len(starts) == 1:  # nothing to compare with: skip the cost
+            best = (0.0, rvec, tvec)
+            break
+        projected, _ = cv2.projectPoints(world, rvec, tvec, camera.K, camera.dist)
+        cost = float(((projected.reshape(-1, 2) - image) ** 2).sum())
         if best is None or cost < best[0]:
             best = (cost, rvec, tvec)
     if best is None:
