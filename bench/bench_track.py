@@ -5,8 +5,9 @@ The room (8 x 6 x 3 m, 30 cards of 0.2 m, f = 820 px, k1 = -0.12) is rendered al
 tracking walk; its true map is PUT into a fresh environment. Runs:
 
 * lock-step: send a frame, wait for its reply, send the next;
-* free-running: send every frame as fast as the socket takes them while replies
-  stream back; the server drops the older frames it cannot keep up with;
+* free-running: a client that sends at a camera's pace (``--free-fps``, 100) without
+  waiting while replies stream back; the server drops the older frames it cannot keep
+  up with (never the newest);
 * two lock-step clients at once (aggregate frames per second).
 
 Columns: frames per second, client-side latency p50/p99 (send to reply), the server's
@@ -82,12 +83,11 @@ def _http(method: str, url: str, body: dict | None = None) -> dict:
 
 
 def _start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir)}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "app.main:app", "--host", "127.0.0.1", "--port", str(port),
-         "--log-level", "warning"],
-        env=env,
-    )
+    # The deployment as the README starts it: `fidotrack serve` (logs to a file).
+    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port),
+           "FIDOTRACK_LOG_LEVEL": "WARNING"}
+    proc = subprocess.Popen([str(Path(sys.executable).parent / "fidotrack"), "serve"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=(data_dir / "server.log").open("wb"))
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
@@ -130,19 +130,20 @@ async def _lock_step(url: str, frames: list[bytes], truth: list[Pose], name: str
     return stats
 
 
-async def _free_running(url: str, frames: list[bytes], truth: list[Pose]) -> RunStats:
-    stats = RunStats("free-running")
+async def _free_running(url: str, frames: list[bytes], truth: list[Pose], fps: float) -> RunStats:
+    stats = RunStats(f"free-running, sent at {fps:.0f} fps")
     sent_at: dict[int, float] = {}
     async with websockets.connect(url, max_size=None) as ws:
         json.loads(await ws.recv())
         start = time.perf_counter()
 
         async def send() -> None:
+            # A camera that delivers `fps` frames a second, whatever the server manages.
             for seq, data in enumerate(frames):
+                await asyncio.sleep(max(0.0, start + seq / fps - time.perf_counter()))
                 sent_at[seq] = time.perf_counter()
                 await ws.send(data)
                 stats.sent += 1
-                await asyncio.sleep(0)  # let replies in between sends
 
         sender = asyncio.create_task(send())
         last = len(frames) - 1
@@ -164,6 +165,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--quality", type=int, default=90, help="JPEG quality")
+    parser.add_argument("--free-fps", type=float, default=100.0, help="send rate of the free-running client")
     args = parser.parse_args()
 
     rng = np.random.default_rng(args.seed)
@@ -186,7 +188,7 @@ def main() -> None:
             url = f"ws://127.0.0.1:{port}/track?environment_id={env['id']}"
             asyncio.run(_lock_step(url, frames[:20], poses[:20], "warm-up"))
             runs = [asyncio.run(_lock_step(url, frames, poses, "lock-step"))]
-            runs.append(asyncio.run(_free_running(url, frames, poses)))
+            runs.append(asyncio.run(_free_running(url, frames, poses, args.free_fps)))
 
             async def two() -> list[RunStats]:
                 return list(await asyncio.gather(_lock_step(url, frames, poses, "2 clients, lock-step (a)"),
