@@ -6,9 +6,10 @@ output (``find_candidates`` with the default classifier; its time is not counted
 
 Columns: proposals / quick / verified / identified are mean quadrilaterals per frame
 after grouping, the 16-sample quick check, the full photometric check and
-identification; rate is found-with-the-right-id-and-all-discs-within-2-px over the
+identification; completed: of the identified, the mean per frame found by completing a
+card from three discs (``COMPLETE_MAX``); rate is found-with-the-right-id-and-all-discs-within-2-px over the
 counted targets (as bench/bench_detect.py); false = detections that are no target;
-group / verify / refine / identify / total are median ms per frame (one thread).
+group / verify / refine / identify / complete / total are median ms per frame (one thread).
 
 Run: ``.venv/bin/python bench/bench_targets.py`` (~1 min), ``--frames 20`` for a quick look.
 """
@@ -37,8 +38,8 @@ from bench.bench_detect import EMPTY, Stats, draw_frame, score_frame  # noqa: E4
 from bench.peers import truth_cards  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter", "clean", EMPTY)
-STAGES = ("group", "verify", "refine", "identify")
-COUNTS = ("proposals", "quick", "verified", "identified")
+STAGES = ("group", "verify", "refine", "identify", "complete")
+COUNTS = ("proposals", "quick", "verified", "identified", "completed")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -78,17 +79,20 @@ def main(argv: list[str] | None = None) -> None:
             for src, a in acc.items():
                 rows.append((condition, src, a))
     print(f"## Targets stage alone, 640x480, {args.frames} frames per condition, seed {args.seed}\n")
-    print("| condition | candidates | cand/frame | proposals | quick | verified | identified | rate | false "
-          "| wrong ids | group ms | verify ms | refine ms | identify ms | total ms (median) | total ms (p90) |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| condition | candidates | cand/frame | proposals | quick | verified | identified | completed | rate "
+          "| false | wrong ids | group ms | verify ms | refine ms | identify ms | complete ms | total ms (median) "
+          "| total ms (p90) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for condition, src, a in rows:
         s = a["stats"]
         rate = "-" if not s.targets else f"{100 * s.rate:.1f}%"
         n = {k: np.mean(v) for k, v in a["n"].items()}
         ms = {k: np.median(v) for k, v in a["ms"].items()}
         print(f"| {condition} | {src} | {np.mean(a['cands']):.0f} | {n['proposals']:.1f} | {n['quick']:.1f} "
-              f"| {n['verified']:.1f} | {n['identified']:.2f} | {rate} | {s.false} | {s.wrong_ids} "
+              f"| {n['verified']:.1f} | {n['identified']:.2f} | {n['completed']:.2f} | {rate} | {s.false} "
+              f"| {s.wrong_ids} "
               f"| {ms['group']:.3f} | {ms['verify']:.3f} | {ms['refine']:.3f} | {ms['identify']:.3f} "
+              f"| {ms['complete']:.3f} "
               f"| {ms['total']:.3f} | {np.percentile(a['ms']['total'], 90):.3f} |")
 
 
