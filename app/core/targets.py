@@ -347,6 +347,30 @@ def _edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi_
 
 
+def _card_corners(pts: np.ndarray, rad: np.ndarray, i: np.ndarray, j: np.ndarray, l_: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Apex triples (i; j, l) as card corners: (j, l) oriented so that j follows i
+    clockwise on screen (as disc 1 follows disc 0) and l precedes it, the shorter side
+    squared, and whether the corner is plausible: interior angle in range, side ratio,
+    parallelogram area over the apex radius squared ((0.6 / 0.125)^2 for any affine view
+    of a card)."""
+    px, py = pts[:, 0], pts[:, 1]
+    ax, ay = px[j] - px[i], py[j] - py[i]
+    bx, by = px[l_] - px[i], py[l_] - py[i]
+    cross = ax * by - ay * bx
+    flip = cross < 0
+    j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
+    cross = np.abs(cross)
+    dot = ax * bx + ay * by
+    l1, l2 = ax * ax + ay * ay, bx * bx + by * by
+    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
+    r2 = rad[i] ** 2
+    short2 = np.minimum(l1, l2)
+    ok = (dot * dot < c2 * l1 * l2) & (short2 >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
+    ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
+    return j, l_, short2, ok
+
+
 def group_candidates(candidates: np.ndarray) -> np.ndarray:
     """Proposed disc quadrilaterals: (P, 4) indices into `candidates` (N, 4) rows
     ``[u, v, radius, score]``, each in the layout's orientation (clockwise on screen,
@@ -463,20 +487,7 @@ def _group(candidates: np.ndarray, img: np.ndarray | None = None, scale: float =
     j = ud[first]
     l_ = dst[second_pos]
     px, py = pts[:, 0], pts[:, 1]
-    ax, ay = px[j] - px[i], py[j] - py[i]
-    bx, by = px[l_] - px[i], py[l_] - py[i]
-    cross = ax * by - ay * bx
-    # orient: j follows i clockwise on screen (as disc 1 follows disc 0), l precedes it
-    flip = cross < 0
-    j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
-    cross = np.abs(cross)
-    dot = ax * bx + ay * by
-    l1, l2 = ax * ax + ay * ay, bx * bx + by * by
-    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
-    r2 = rad[i] ** 2
-    short2 = np.minimum(l1, l2)
-    ok = (dot * dot < c2 * l1 * l2) & (short2 >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
-    ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
+    j, l_, short2, ok = _card_corners(pts, rad, i, j, l_)
     sel = np.flatnonzero(ok)
     if sel.size == 0:
         return empty, graph
@@ -1385,19 +1396,7 @@ def _corner_triples(g: _Graph, free: np.ndarray, img: np.ndarray, scale: float, 
     second = np.arange(tot) - np.repeat(np.cumsum(more) - more, more) + np.repeat(pos + 1, more)
     i, j, l_ = src[first], dst[first], dst[second]
     white = np.minimum(white[first], white[second])
-    px, py = p[:, 0], p[:, 1]
-    ax, ay = px[j] - px[i], py[j] - py[i]
-    bx, by = px[l_] - px[i], py[l_] - py[i]
-    cross = ax * by - ay * bx
-    flip = cross < 0
-    j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
-    cross = np.abs(cross)
-    dot = ax * bx + ay * by
-    l1, l2 = ax * ax + ay * ay, bx * bx + by * by
-    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
-    r2 = g.rad[i] ** 2
-    ok = (dot * dot < c2 * l1 * l2) & (np.minimum(l1, l2) >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
-    ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
+    j, l_, _, ok = _card_corners(p, g.rad, i, j, l_)
     rj, rl = g.rad[j], g.rad[l_]
     ok &= (rj <= RADIUS_RATIO_MAX * rl) & (rl <= RADIUS_RATIO_MAX * rj)
     sel = np.flatnonzero(ok)
