@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +51,15 @@ def _start(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
         assert process.poll() is None, log.read_text()
         assert time.monotonic() < deadline, "server did not become ready"
         time.sleep(0.2)
+
+
+def _finished(fetch: Callable[[], dict], timeout: float = 240.0) -> dict:
+    """The job (as `fetch` returns it) once it has left queued/running."""
+    deadline = time.monotonic() + timeout
+    while (state := fetch())["status"] in ("queued", "running"):
+        assert time.monotonic() < deadline, state
+        time.sleep(0.3)
+    return state
 
 
 @dataclass
@@ -106,10 +116,7 @@ def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room:
         # The restarted server surveys normally.
         again = httpx.post(f"{base}/environments/{env}/survey", files={"video": ("v.avi", room_video, "video/avi")},
                            timeout=60).json()
-        deadline = time.monotonic() + 240
-        while (state := httpx.get(f"{base}/jobs/{again['id']}").json())["status"] in ("queued", "running"):
-            assert time.monotonic() < deadline, state
-            time.sleep(0.3)
+        state = _finished(lambda: httpx.get(f"{base}/jobs/{again['id']}").json())
         assert state["status"] == "succeeded", state
         assert httpx.get(f"{base}/environments/{env}/map").json()["survey_job_id"] == again["id"]
     finally:
@@ -206,10 +213,7 @@ def test_survey_and_several_tracking_clients_at_once_lose_nothing(client: TestCl
         errors = [np.linalg.norm(np.asarray(r["pose"]["position"]) - room.poses[r["seq"]].position)
                   for r in replies if r["pose"] is not None]
         assert len(errors) >= len(room.frames) // 2 and np.median(errors) < 0.02
-    deadline = time.monotonic() + 240
-    while (state := client.get(f"/jobs/{job['id']}").json())["status"] in ("queued", "running"):
-        assert time.monotonic() < deadline, state
-        time.sleep(0.3)
+    state = _finished(lambda: client.get(f"/jobs/{job['id']}").json())
     assert state["status"] == "succeeded", state
     assert client.get(f"/environments/{surveyed}/map").json()["survey_job_id"] == job["id"]
     assert client.get(f"/environments/{tracked}/map").json() == MapDocument.model_validate(true_map).model_dump(

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import JobsDep, SessionDep, SettingsDep
-from app.routers.uploads import check_declared_length, read_upload
+from app.routers.uploads import read_upload
 from app.schemas import ClassifierOut, JobOut, Problem
 from app.services import classifiers
 
@@ -28,7 +28,6 @@ def get_classifier(classifier_id: int, session: SessionDep) -> ClassifierOut:
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
              responses={413: {"model": Problem}, 422: {"model": Problem}, **_404})
 async def train_classifier(
-    request: Request,
     response: Response,
     session: SessionDep,
     settings: SettingsDep,
@@ -41,7 +40,6 @@ async def train_classifier(
     """Adapt a classifier to a site's own images (odd lighting, odd cameras): targets
     the current detector finds and verifies become positives, the candidates it
     rejects become hard negatives. Returns the job (202, ``Location: /jobs/{id}``)."""
-    check_declared_length(request, settings.max_upload_bytes)
     blobs = [await read_upload(upload, settings.max_image_bytes) for upload in images]
     job = classifiers.submit_training(session, runner, settings, blobs, name, base_classifier_id, family)
     response.headers["Location"] = f"/jobs/{job.id}"

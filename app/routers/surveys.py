@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import JobsDep, SessionDep, SettingsDep
-from app.routers.uploads import check_declared_length
 from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
 from app.services import alignments, surveys
 
@@ -22,7 +21,6 @@ router = APIRouter(prefix="/environments", tags=["surveys"])
 )
 def start_survey(
     environment_id: int,
-    request: Request,
     response: Response,
     session: SessionDep,
     settings: SettingsDep,
@@ -37,7 +35,6 @@ def start_survey(
     motion gives the camera's focal length, principal point and distortion and the 3D
     position of every disc. Returns the job (202, ``Location: /jobs/{id}``); on success
     it replaces the environment's map in one transaction."""
-    check_declared_length(request, settings.max_upload_bytes)
     job = surveys.submit_survey(
         session, runner, settings, environment_id,
         video.file if video is not None else None,
