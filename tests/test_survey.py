@@ -115,24 +115,24 @@ def test_misidentified_views_are_removed() -> None:
     assert result.rms_px < 0.3
 
 
-@pytest.mark.xfail(strict=True, reason="known weakness: the same misread code in consecutive frames, before "
-                   "the real target is surveyed, places that target wrongly (consistent wrong views) and the "
-                   "growth does not recover (whether it does depends on the growth order)")
-def test_wrongly_identified_card_in_later_frames_is_removed() -> None:
+@pytest.mark.parametrize("seed", [5, 8])  # 5: a card the old refinement placed 0.85 m off
+def test_wrongly_identified_card_in_later_frames_is_removed(seed: int) -> None:
     """A misread code in the middle of the video, in frames with other targets."""
     scene, _ = _room()
-    frames = [list(f) for f in _synthetic_frames(0.1, seed=5)]
+    frames = [list(f) for f in _synthetic_frames(0.1, seed=seed)]
     ids_seen = sorted({t.id for f in frames for t in f})
-    injected = 0
+    injected: list[int] = []  # frames holding a misread view
     for k in range(40, len(frames)):
         f = frames[k]
         ids = {t.id for t in f}
         spare = [i for i in ids_seen if i not in ids]
-        if len(f) >= 3 and injected < 3:
+        if len(f) >= 3 and len(injected) < 3:
             f[0] = DetectedTarget(spare[0], f[0].discs, 1.0)
-            injected += 1
+            injected.append(k)
     result = survey(frames, 640, 480, SIZE)
-    assert result.n_rejected_views >= injected
+    # Every misread view is either rejected or left out with its whole frame.
+    left_out = sum(result.trajectory[k] is None for k in injected)
+    assert result.n_rejected_views + left_out >= len(injected)
     assert _disc_rms(result, scene) < 0.006
     assert result.rms_px < 0.3
 
