@@ -318,3 +318,92 @@ def test_three_disc_corner_of_nothing_is_not_a_target() -> None:
         img[y - 20 : y + 21, x - 20 : x + 21] = cover
         cand = np.column_stack([discs[[0, 1, 3]], np.full(3, 15.0), np.ones(3)])
         assert tg.assemble_targets(img, cand) == []
+
+
+# --------------------------------------------------------------------------------------
+# The fast paths of the stage give exactly what the plain numpy expressions give
+# --------------------------------------------------------------------------------------
+
+
+def test_homographies_of_a_few_quadrilaterals_match_the_vectorised_path() -> None:
+    rng = np.random.default_rng(9)
+    q = rng.uniform(-50, 700, (4 * tg._FEW, 4, 2))
+    q[0] = [[0, 0], [1, 0], [2, 0], [3, 0]]  # collinear: the guarded denominator
+    q[1, 2] = np.nan
+    q[2] = q[2, :1]  # all on one spot
+    with np.errstate(invalid="ignore"):
+        many = tg.homographies(q)  # more than _FEW: vectorised
+        for start in range(0, q.shape[0], tg._FEW):
+            few = tg.homographies(q[start : start + tg._FEW])  # Python floats
+            assert np.array_equal(few, many[start : start + tg._FEW], equal_nan=True)
+
+
+def test_masked_median_u8_matches_numpy() -> None:
+    rng = np.random.default_rng(10)
+    values = rng.integers(0, 256, (40, 90)).astype(np.uint8)
+    mask = rng.uniform(size=values.shape) < rng.uniform(0, 1, (40, 1))
+    mask[0] = False
+    got = tg._masked_median_u8(values, mask)
+    assert np.isnan(got[0])
+    for r in range(1, 40):
+        if mask[r].any():
+            assert got[r] == np.median(values[r][mask[r]])
+
+
+def test_mean_is_numpys_mean() -> None:
+    rng = np.random.default_rng(11)
+    for shape, axis in (((50, 7), 1), ((30, 9, 5), 2), ((5, 40), 0)):
+        x = rng.normal(size=shape).astype(np.float32) * 100
+        assert np.array_equal(tg._mean(x, axis), x.mean(axis=axis))
+
+
+def test_measures_read_the_same_order_statistics_as_numpy() -> None:
+    rng = np.random.default_rng(12)
+    plan = tg._plan(get_family(DEFAULT_FAMILY).cells)
+    m_pts = plan.points.shape[0]
+    vals = rng.integers(0, 256, (60, m_pts)).astype(np.float32)  # whole grey levels, as cv2.remap reads them
+    inside = rng.uniform(size=vals.shape) < 0.97
+    inside[:20] = True
+    m = tg._measures_from(vals, inside, plan)
+    disc = vals[:, plan.disc.ravel()]
+    white = vals[:, plan.white]
+    inner = vals[:, np.concatenate([plan.between, plan.gap])]
+    black = np.median(disc, axis=1)
+    c = np.maximum(np.median(white, axis=1) - black, 1e-3)
+    assert np.array_equal(m.black, black)
+    assert np.array_equal(m.white, np.median(white, axis=1))
+    close = {"rtol": 1e-5, "atol": 1e-5}
+    assert np.allclose(m.uniformity, (np.percentile(inner, 90, axis=1) - np.percentile(inner, 10, axis=1)) / c, **close)
+    assert np.allclose(m.white_low, (np.percentile(white, tg.WHITE_LOW_PERCENTILE, axis=1) - black) / c, **close)
+    assert np.allclose(m.gap_low, (np.sort(vals[:, plan.gap], axis=1)[:, 1] - black) / c, **close)
+    assert np.allclose(m.disc_max, (disc.max(axis=1) - black) / c, **close)
+    assert np.allclose(m.disc_level, ((vals[:, plan.disc].mean(axis=2) - black[:, None]) / c[:, None]).max(axis=1),
+                       **close)
+    for r in range(60):
+        edge = np.sort(vals[r, plan.edge][inside[r, plan.edge]])
+        want = (edge[edge.size // 2] - black[r]) / c[r] if edge.size >= 4 else 1.0
+        assert np.isclose(m.edge_level[r], want, **close)
+    core_in = inside[:, plan.core].all(axis=1)
+    assert np.array_equal(m.valid, np.where(core_in, inside.mean(axis=1), 0.0))
+
+
+def test_windows_inside_and_overhanging_the_image_read_the_same_pixels() -> None:
+    rng = np.random.default_rng(13)
+    img = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+    size = 9
+    for x0, y0 in ((np.array([0, 10, 71]), np.array([0, 20, 51])), (np.array([-3, 40, 75]), np.array([5, -2, 58]))):
+        got, valid = tg._windows_u8(img, x0, y0, size)
+        offs = np.arange(size)
+        xi, yi = x0[:, None, None] + offs[None, None, :], y0[:, None, None] + offs[None, :, None]
+        assert np.array_equal(got, img[np.clip(yi, 0, 59), np.clip(xi, 0, 79)])
+        inside = (xi >= 0) & (xi < 80) & (yi >= 0) & (yi < 60)
+        assert (valid is None and inside.all()) or np.array_equal(valid, inside)
+
+
+def test_refinement_given_its_homographies_is_the_same(clean_frames: list) -> None:
+    image, truth = clean_frames[0]
+    t = next(t for t in truth.targets if t.visible)
+    start = t.discs_px[None] + np.random.default_rng(14).uniform(-1, 1, (1, 4, 2))
+    a = tg.refine_centres(image, start)
+    b = tg.refine_centres(image, start, _homographies=tg.homographies(start))
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])

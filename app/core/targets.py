@@ -170,30 +170,58 @@ def homographies(quads: np.ndarray) -> np.ndarray:
     (P, 4, 2), all at once (Heckbert's closed-form square-to-quad mapping; a Python loop
     over cv2.getPerspectiveTransform costs more than the rest of the grouping)."""
     q = np.asarray(quads, np.float64).reshape(-1, 4, 2)
-    x0, x1, x2, x3 = (q[:, k, 0] for k in range(4))
-    y0, y1, y2, y3 = (q[:, k, 1] for k in range(4))
-    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
-    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    if q.shape[0] <= _FEW:
+        return _homographies_few(q)
+    q0, q1, q2, q3 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]  # (P, 2): x, y
+    d1, d2 = q1 - q2, q3 - q2
+    d3 = q0 - q1 + q2 - q3
+    dx1, dy1, dx2, dy2, dx3, dy3 = d1[:, 0], d1[:, 1], d2[:, 0], d2[:, 1], d3[:, 0], d3[:, 1]
     den = dx1 * dy2 - dx2 * dy1
     den = np.where(np.abs(den) > 1e-12, den, 1e-12)
-    g = (dx3 * dy2 - dx2 * dy3) / den
-    h = (dx1 * dy3 - dx3 * dy1) / den
     hs = np.empty((q.shape[0], 3, 3))
-    hs[:, 0, 0] = x1 - x0 + g * x1
-    hs[:, 0, 1] = x3 - x0 + h * x3
-    hs[:, 0, 2] = x0
-    hs[:, 1, 0] = y1 - y0 + g * y1
-    hs[:, 1, 1] = y3 - y0 + h * y3
-    hs[:, 1, 2] = y0
-    hs[:, 2, 0] = g
-    hs[:, 2, 1] = h
+    g, h = hs[:, 2, 0], hs[:, 2, 1]
+    np.divide(dx3 * dy2 - dx2 * dy3, den, out=g)
+    np.divide(dx1 * dy3 - dx3 * dy1, den, out=h)
+    hs[:, :2, 0] = q1 - q0 + g[:, None] * q1
+    hs[:, :2, 1] = q3 - q0 + h[:, None] * q3
+    hs[:, :2, 2] = q0
     hs[:, 2, 2] = 1.0
     return hs @ _LAYOUT_TO_SQUARE
 
 
+#: Up to this many quadrilaterals (a frame's usual few), Python floats beat numpy's
+#: per-call overhead (~1 us a call, whatever the size).
+_FEW = 8
+
+
+def _homographies_few(q: np.ndarray) -> np.ndarray:
+    """`homographies` of a few quadrilaterals (P, 4, 2) in Python floats: the same
+    arithmetic, operation for operation, as the vectorised code (identical results)."""
+    rows = []
+    for (x0, y0), (x1, y1), (x2, y2), (x3, y3) in q.tolist():
+        dx1, dy1, dx2, dy2 = x1 - x2, y1 - y2, x3 - x2, y3 - y2
+        dx3, dy3 = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+        den = dx1 * dy2 - dx2 * dy1
+        if not abs(den) > 1e-12:  # (NaN too, as np.where(abs > 1e-12) does)
+            den = 1e-12
+        g = (dx3 * dy2 - dx2 * dy3) / den
+        h = (dx1 * dy3 - dx3 * dy1) / den
+        rows.append([[x1 - x0 + g * x1, x3 - x0 + h * x3, x0], [y1 - y0 + g * y1, y3 - y0 + h * y3, y0], [g, h, 1.0]])
+    return np.array(rows, np.float64).reshape(-1, 3, 3) @ _LAYOUT_TO_SQUARE
+
+
+def _homogeneous(pts: np.ndarray) -> np.ndarray:
+    """Card points (M, 2) -> (M, 3) with w = 1."""
+    return np.concatenate([pts, np.ones((pts.shape[0], 1))], axis=1)
+
+
+_DISC_CENTRES_H = _homogeneous(DISC_CENTRES)
+
+
 def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Map card points `pts` (M, 2) through every homography (P, 3, 3) -> (P, M, 2)."""
-    x = np.matmul(np.concatenate([pts, np.ones((pts.shape[0], 1))], axis=1), hs.transpose(0, 2, 1))
+    """Map card points `pts` (M, 2), or (M, 3) homogeneous, through every homography
+    (P, 3, 3) -> (P, M, 2)."""
+    x = np.matmul(pts if pts.shape[1] == 3 else _homogeneous(pts), hs.transpose(0, 2, 1))
     w = x[..., 2:3]
     w = np.where(np.abs(w) > 1e-12, w, 1e-12)
     return x[..., :2] / w
@@ -205,18 +233,20 @@ def _ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.n
     infinity; pulled back to the card, that line is the homography's third row
     (g, h, 1), and the pole of it with respect to the circle is the card point
     ``c - radius**2 (g, h) / (g cx + h cy + 1)``: its image is the ellipse centre."""
-    g = hs[:, 2, 0, None]
-    h = hs[:, 2, 1, None]
-    w = g * centres[None, :, 0] + h * centres[None, :, 1] + hs[:, 2, 2, None]  # (P, K)
+    gh = hs[:, None, 2, :2]  # (P, 1, 2)
+    w = gh[..., 0] * centres[None, :, 0] + gh[..., 1] * centres[None, :, 1] + hs[:, 2, 2, None]  # (P, K)
     w = np.where(np.abs(w) > 1e-12, w, 1e-12)
     k = (radius * radius) / w
-    px = centres[None, :, 0] - k * g
-    py = centres[None, :, 1] - k * h
-    x = hs[:, None, 0, 0] * px + hs[:, None, 0, 1] * py + hs[:, None, 0, 2]
-    y = hs[:, None, 1, 0] * px + hs[:, None, 1, 1] * py + hs[:, None, 1, 2]
-    z = hs[:, None, 2, 0] * px + hs[:, None, 2, 1] * py + hs[:, None, 2, 2]
+    p = centres[None] - k[..., None] * gh  # (P, K, 2) the poles on the card
+    x = hs[:, None, :, 0] * p[..., 0, None] + hs[:, None, :, 1] * p[..., 1, None] + hs[:, None, :, 2]  # (P, K, 3)
+    z = x[..., 2:]
     z = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    return np.stack([x / z, y / z], axis=-1)
+    return x[..., :2] / z
+
+
+def _perspective_bias(hs: np.ndarray) -> np.ndarray:
+    """(P, 4, 2) image-ellipse centre minus the image of the centre, of each disc."""
+    return _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - _apply(hs, _DISC_CENTRES_H)
 
 
 # --------------------------------------------------------------------------------------
@@ -230,14 +260,18 @@ def _clean(candidates: np.ndarray) -> np.ndarray:
     c = np.asarray(candidates, dtype=np.float64)
     if c.ndim != 2 or c.shape[0] == 0 or c.shape[1] < 3:
         return np.zeros(0, np.intp)
-    finite = np.isfinite(c[:, :3]).all(axis=1) & (c[:, 2] > 0) & (np.abs(c[:, :2]) < 1e6).all(axis=1)
+    # |u|, |v| < 1e6 is False for NaN and inf too
+    usable = (np.abs(c[:, :2]) < 1e6).all(axis=1) & (c[:, 2] > 0) & (c[:, 2] < np.inf)
     if c.shape[1] >= 4:
-        finite &= np.isfinite(c[:, 3])
-    idx = np.flatnonzero(finite)
+        usable &= np.isfinite(c[:, 3])
+    idx = np.flatnonzero(usable)
     if idx.size < 2:
         return idx
-    cell = np.rint(c[idx, :2] * 2.0)
+    cell = np.rint((c if idx.size == c.shape[0] else c.take(idx, axis=0))[:, :2] * 2.0)
     key = cell[:, 0] * 4_000_003.0 + cell[:, 1]  # exact in float64 for |u|, |v| < 1e6
+    ks = np.sort(key)
+    if (ks[1:] != ks[:-1]).all():
+        return idx  # no duplicates (the candidate stage suppresses them already)
     # by cell, then best score first (ties: lower index) within each cell
     order = np.lexsort((-c[idx, 3], key)) if c.shape[1] >= 4 else np.argsort(key, kind="stable")
     ks = key[order]
@@ -245,36 +279,34 @@ def _clean(candidates: np.ndarray) -> np.ndarray:
     return np.sort(idx[first])
 
 
-def _quad_geometry_ok(p: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Cheap geometric checks of disc quadrilaterals p (P, 4, 2) with candidate radii
-    r (P, 4), vertices in the layout's orientation: bool (P,). Squared quantities
-    (no square roots or arc cosines) and per-vertex columns (numpy reductions over a
-    short last axis are slow)."""
-    if p.shape[0] == 0:
+#: cos^2 of the smallest interior angle (`ANGLE_RANGE_DEG`; the largest is its supplement).
+_COS2_ANGLE = float(np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2)
+#: Vertex k + 1 of a quadrilateral, for the arrays (4, P) of `_quad_geometry_ok`.
+_NEXT = np.array([1, 2, 3, 0])
+
+
+def _quad_geometry_ok(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Cheap geometric checks of disc quadrilaterals with vertices (x, y) (4, P) and
+    candidate radii r (4, P), vertices in the layout's orientation: bool (P,). Squared
+    quantities (no square roots or arc cosines); vertex-major arrays, so each check is
+    one numpy call for all four vertices (a reduction over a short last axis is slow)."""
+    if x.shape[1] == 0:
         return np.zeros(0, bool)
-    x = [p[:, k, 0] for k in range(4)]
-    y = [p[:, k, 1] for k in range(4)]
-    rr = [r[:, k] for k in range(4)]
-    area = 0.5 * sum(x[k] * y[(k + 1) % 4] - x[(k + 1) % 4] * y[k] for k in range(4))
-    rm = 0.25 * (rr[0] + rr[1] + rr[2] + rr[3])
+    xn, yn = x[_NEXT], y[_NEXT]
+    t = x * yn - xn * y
+    area = 0.5 * (t[0] + t[1] + t[2] + t[3])
+    rm = 0.25 * (r[0] + r[1] + r[2] + r[3])
     # sqrt(area) / radius is the same for every affine view of a card
     ok = (area >= (SQRT_AREA_OVER_RADIUS[0] ** 2) * rm * rm) & (area <= (SQRT_AREA_OVER_RADIUS[1] ** 2) * rm * rm)
-    rmax = np.maximum(np.maximum(rr[0], rr[1]), np.maximum(rr[2], rr[3]))
-    rmin = np.minimum(np.minimum(rr[0], rr[1]), np.minimum(rr[2], rr[3]))
-    ok &= rmax <= RADIUS_RATIO_MAX * rmin
-    ex = [x[(k + 1) % 4] - x[k] for k in range(4)]  # e[k] = p[k+1] - p[k]
-    ey = [y[(k + 1) % 4] - y[k] for k in range(4)]
-    s2 = [ex[k] * ex[k] + ey[k] * ey[k] for k in range(4)]
-    smax = np.maximum(np.maximum(s2[0], s2[1]), np.maximum(s2[2], s2[3]))
-    smin = np.minimum(np.minimum(s2[0], s2[1]), np.minimum(s2[2], s2[3]))
-    ok &= smin >= SIDE_RATIO_MIN**2 * smax
-    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
-    for k in range(4):
-        m = (k + 1) % 4
-        cross = ex[k] * ey[m] - ey[k] * ex[m]
-        dot = ex[k] * ex[m] + ey[k] * ey[m]
-        # convex and turning like the layout; interior angle at vertex k+1 in range
-        ok &= (cross > 0) & (dot * dot < c2 * s2[k] * s2[m])
+    ok &= r.max(axis=0) <= RADIUS_RATIO_MAX * r.min(axis=0)
+    ex, ey = xn - x, yn - y  # e[k] = p[k+1] - p[k]
+    s2 = ex * ex + ey * ey
+    ok &= s2.min(axis=0) >= SIDE_RATIO_MIN**2 * s2.max(axis=0)
+    exn, eyn, s2n = ex[_NEXT], ey[_NEXT], s2[_NEXT]
+    cross = ex * eyn - ey * exn
+    dot = ex * exn + ey * eyn
+    # convex and turning like the layout; interior angle at every vertex in range
+    ok &= ((cross > 0) & (dot * dot < _COS2_ANGLE * s2 * s2n)).all(axis=0)
     return ok
 
 
@@ -299,20 +331,20 @@ def _edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cheaper than k nearest-neighbour queries."""
     n = pts.shape[0]
     order = np.argsort(pts[:, 0], kind="stable")
-    xs = pts[order, 0]
-    reach = (1.5 * EDGE_OVER_RADIUS[1]) * rad[order]
-    hi = np.searchsorted(xs, xs + reach, side="right")
+    # (ndarray.take: cheaper than fancy indexing, the more so on rows of 2-d arrays)
+    xs, ys, rs = pts[:, 0].take(order), pts[:, 1].take(order), rad.take(order)
+    reach = (1.5 * EDGE_OVER_RADIUS[1]) * rs
     start = np.arange(1, n + 1)
-    cnt = np.maximum(hi - start, 0)
+    cnt = np.maximum(np.searchsorted(xs, xs + reach, side="right") - start, 0)
     total = int(cnt.sum())
     if total == 0:
         z = np.zeros(0, np.intp)
         return z, z
+    # pairs (a, b) of positions in x order: b runs over start[a] .. start[a] + cnt[a] - 1
     a = np.repeat(np.arange(n), cnt)
-    b = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(start, cnt)
-    a, b = order[a], order[b]
-    ra, rb = rad[a], rad[b]
-    dx, dy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
+    b = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt - start, cnt)
+    ra, rb = np.repeat(rs, cnt), rs.take(b)  # (np.repeat: cheaper than gathering by a)
+    dx, dy = xs.take(b) - np.repeat(xs, cnt), ys.take(b) - np.repeat(ys, cnt)
     d2 = dx * dx + dy * dy
     rs2 = ra + rb
     rs2 *= 0.5
@@ -320,7 +352,7 @@ def _edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ok = (rb <= RADIUS_RATIO_MAX * ra) & (ra <= RADIUS_RATIO_MAX * rb)
     ok &= (d2 >= EDGE_OVER_RADIUS[0] ** 2 * rs2) & (d2 <= EDGE_OVER_RADIUS[1] ** 2 * rs2)
     sel = np.flatnonzero(ok)
-    a, b = a[sel], b[sel]
+    a, b = order[a[sel]], order[b[sel]]
     if a.size == 0:
         return a, b
     deg = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
@@ -328,23 +360,22 @@ def _edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if crowded.any():
         # An edge goes when both its ends are crowded and neither ranks it among its
         # `EDGE_KEEP` most side-like (4.8 radii apart, equal radii).
-        both = np.flatnonzero(crowded[a] & crowded[b])
-        if both.size:
-            inc = np.flatnonzero(crowded[a] | crowded[b])  # every edge of a crowded end
+        ca, cb = crowded[a], crowded[b]
+        if (ca & cb).any():
+            inc = np.flatnonzero(ca | cb)  # every edge of a crowded end
             s_inc = sel[inc]
             bad = np.abs(np.log(d2[s_inc] / (23.04 * rs2[s_inc]))) * 0.5 + 0.5 * np.abs(np.log(rb[s_inc] / ra[s_inc]))
             m = inc.size
             ends = np.concatenate([a[inc], b[inc]])
-            key = np.lexsort((np.tile(bad, 2), ends))
+            key = np.lexsort((np.concatenate([bad, bad]), ends))
             se = ends[key]
             rank = np.empty(2 * m, np.intp)
             rank[key] = np.arange(2 * m) - np.searchsorted(se, se, side="left")
             drop = np.zeros(a.size, bool)
-            drop[inc] = (rank[:m] >= EDGE_KEEP) & (rank[m:] >= EDGE_KEEP)
-            drop[inc] &= crowded[a[inc]] & crowded[b[inc]]
-            a, b = a[~drop], b[~drop]
-    lo, hi_ = np.minimum(a, b), np.maximum(a, b)
-    return lo, hi_
+            drop[inc] = (rank[:m] >= EDGE_KEEP) & (rank[m:] >= EDGE_KEEP) & ca[inc] & cb[inc]
+            keep = ~drop
+            a, b = a[keep], b[keep]
+    return np.minimum(a, b), np.maximum(a, b)
 
 
 def _card_corners(pts: np.ndarray, rad: np.ndarray, i: np.ndarray, j: np.ndarray, l_: np.ndarray
@@ -355,18 +386,18 @@ def _card_corners(pts: np.ndarray, rad: np.ndarray, i: np.ndarray, j: np.ndarray
     parallelogram area over the apex radius squared ((0.6 / 0.125)^2 for any affine view
     of a card)."""
     px, py = pts[:, 0], pts[:, 1]
-    ax, ay = px[j] - px[i], py[j] - py[i]
-    bx, by = px[l_] - px[i], py[l_] - py[i]
+    xi, yi = px[i], py[i]
+    ax, ay = px[j] - xi, py[j] - yi
+    bx, by = px[l_] - xi, py[l_] - yi
     cross = ax * by - ay * bx
     flip = cross < 0
     j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
     cross = np.abs(cross)
     dot = ax * bx + ay * by
     l1, l2 = ax * ax + ay * ay, bx * bx + by * by
-    c2 = np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2
     r2 = rad[i] ** 2
     short2 = np.minimum(l1, l2)
-    ok = (dot * dot < c2 * l1 * l2) & (short2 >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
+    ok = (dot * dot < _COS2_ANGLE * l1 * l2) & (short2 >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
     ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
     return j, l_, short2, ok
 
@@ -394,7 +425,9 @@ def group_candidates(candidates: np.ndarray) -> np.ndarray:
 class _Graph:
     """The grouping's candidate graph, kept for card completion: usable candidates
     (rows `idx` of the input), their points and radii, and the edges in CSR form (both
-    directions, each row sorted by neighbour; local indices)."""
+    directions, each row sorted by neighbour; local indices). With the side test
+    (`_side_test`): the grey level at each candidate and the plausible card corners at
+    every apex, for completion."""
 
     idx: np.ndarray
     pts: np.ndarray
@@ -402,7 +435,10 @@ class _Graph:
     src: np.ndarray
     dst: np.ndarray
     dark: np.ndarray | None = None  # (N,) grey level at each candidate (`_side_test`)
-    white: np.ndarray | None = None  # per edge entry: the darkest white point of the side
+    #: (3, C) apex triples (i, j, l) of two edges at i that pass `_card_corners` (j, l
+    #: oriented) with similar radii at j and l; in CSR order (apex, then its edges)
+    corners: np.ndarray | None = None
+    corner_white: np.ndarray | None = None  # (C,) the darker of the two sides' darkest white points
 
 
 #: A side of a card (`_side_test`): five points on the white between two discs (halfway,
@@ -416,6 +452,8 @@ class _Graph:
 SIDE_WHITE_MIN = 0.6
 SIDE_WHITE_SPREAD = 0.45
 SIDE_DISC_SPREAD = 0.7
+#: (x, y) -> (-y, x) / 16: the offset across a side (`_side_test`).
+_ACROSS = np.array([-1.0 / 16.0, 1.0 / 16.0])
 
 
 def _side_test(pts: np.ndarray, a: np.ndarray, b: np.ndarray, img: np.ndarray, scale: float
@@ -423,10 +461,10 @@ def _side_test(pts: np.ndarray, a: np.ndarray, b: np.ndarray, img: np.ndarray, s
     """Which edges (a, b) between candidates `pts` could be a side of a card, looked at
     in `img` (`scale`: its pixels per full-resolution pixel): (bool (E,), the grey level
     at each candidate (N,), the darkest white point of each edge (E,))."""
-    pa, pb = pts[a], pts[b]
+    pa, pb = pts.take(a, axis=0), pts.take(b, axis=0)
     v = pb - pa
     mp = 0.5 * (pa + pb)
-    across = np.stack([-v[:, 1], v[:, 0]], 1) * (1.0 / 16.0)
+    across = v[:, ::-1] * _ACROSS
     look = np.concatenate([pts, mp, pa + 0.4 * v, pa + 0.6 * v, mp + across, mp - across]) * scale
     # one remap, a two-channel map (cheaper than two strided single-channel ones)
     vals = cv2.remap(img, look.astype(np.float32).reshape(1, -1, 2), None, cv2.INTER_LINEAR,
@@ -436,7 +474,7 @@ def _side_test(pts: np.ndarray, a: np.ndarray, b: np.ndarray, img: np.ndarray, s
     w = vals[n:].reshape(5, e)
     da, db = dark[a], dark[b]
     wmin, wmax = w.min(axis=0), w.max(axis=0)
-    con = np.maximum(w.mean(axis=0) - 0.5 * (da + db), 1e-3)
+    con = np.maximum(_mean(w, 0) - 0.5 * (da + db), 1e-3)
     ok = (con >= MIN_CONTRAST_GREY) & (wmin - np.maximum(da, db) >= SIDE_WHITE_MIN * con)
     ok &= (wmax - wmin <= SIDE_WHITE_SPREAD * con) & (np.abs(da - db) <= SIDE_DISC_SPREAD * con)
     return ok, dark, wmin
@@ -446,14 +484,15 @@ def _group(candidates: np.ndarray, img: np.ndarray | None = None, scale: float =
            ) -> tuple[np.ndarray, _Graph | None]:
     """`group_candidates` and the candidate graph it searched (None if too few). With
     `img` (a pyramid level, `scale` its pixels per full-resolution pixel) an edge must
-    also look like a card side (`_side_test`)."""
+    also look like a card side (`_side_test`), and the graph keeps the card corners at
+    every apex for completion (`_corner_triples`)."""
     empty = np.zeros((0, 4), np.intp)
     idx = _clean(candidates)
     n = idx.size
     if n < 3:
         return empty, None
-    c = np.asarray(candidates, np.float64)[idx]
-    pts, rad = c[:, :2], c[:, 2]
+    c = np.asarray(candidates, np.float64).take(idx, axis=0)
+    pts, rad = c[:, :2].copy(), c[:, 2].copy()  # contiguous: for ndarray.take
     ea, eb = _edges(pts, rad)
     dark = white = None
     if img is not None and ea.size:
@@ -464,48 +503,50 @@ def _group(candidates: np.ndarray, img: np.ndarray | None = None, scale: float =
     dst = np.concatenate([eb, ea])
     key = np.argsort(src * n + dst)
     src, dst = src[key], dst[key]
-    if white is not None:
-        white = np.concatenate([white, white])[key]
-    graph = _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark, white=white)
-    if n < 4 or ea.size < 2:
-        return empty, graph
     deg = np.bincount(src, minlength=n)
-    row_start = np.cumsum(deg) - deg
-    # apex triples (i, j, l), i < j < l, j and l both neighbours of i: every pair of
-    # entries of i's row beyond i
-    up = dst > src
-    us, ud = src[up], dst[up]
-    pos = np.flatnonzero(up)
-    row_end = row_start[us] + deg[us]
-    more = row_end - pos - 1  # entries after this one in the same row (all > i too)
+    row_end = np.cumsum(deg)
+    # every apex pair: entries (first, second) of one row, first before second
+    pos = np.arange(src.size)
+    more = row_end[src] - pos - 1  # entries after this one in the same row
     tot = int(more.sum())
     if tot == 0:
+        return empty, _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark)
+    first = np.repeat(pos, more)
+    second = np.arange(tot) - np.repeat(np.cumsum(more) - more - pos - 1, more)
+    i = src[first]
+    j0 = dst[first]
+    j, l_, short2, ok = _card_corners(pts, rad, i, j0, dst[second])
+    corners = corner_white = None
+    if dark is not None:
+        # completion's corners (any apex): similar radii at j and l too
+        rj, rl = rad[j], rad[l_]
+        sel = np.flatnonzero(ok & (rj <= RADIUS_RATIO_MAX * rl) & (rl <= RADIUS_RATIO_MAX * rj))
+        corners = np.array([i[sel], j[sel], l_[sel]])
+        white = np.concatenate([white, white])[key]
+        corner_white = np.minimum(white[first[sel]], white[second[sel]])
+    graph = _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark, corners=corners, corner_white=corner_white)
+    if n < 4 or ea.size < 2:
         return empty, graph
-    first = np.repeat(np.arange(us.size), more)
-    second_pos = np.arange(tot) - np.repeat(np.cumsum(more) - more, more) + np.repeat(pos + 1, more)
-    i = us[first]
-    j = ud[first]
-    l_ = dst[second_pos]
-    px, py = pts[:, 0], pts[:, 1]
-    j, l_, short2, ok = _card_corners(pts, rad, i, j, l_)
-    sel = np.flatnonzero(ok)
+    # the grouping's apex is the lowest index of its card: i < j, l
+    sel = np.flatnonzero(ok & (j0 > i))
     if sel.size == 0:
         return empty, graph
     i, j, l_, short2 = i[sel], j[sel], l_[sel], short2[sel]
+    px, py = pts[:, 0], pts[:, 1]
     predx, predy = px[j] + px[l_] - px[i], py[j] + py[l_] - py[i]
     # the fourth disc neighbours j: every neighbour of j near the prediction
     dj = deg[j]
     tot = int(dj.sum())
     t = np.repeat(np.arange(i.size), dj)
-    k = dst[np.arange(tot) - np.repeat(np.cumsum(dj) - dj, dj) + np.repeat(row_start[j], dj)]
+    k = dst[np.arange(tot) - np.repeat(np.cumsum(dj) - dj - (row_end[j] - dj), dj)]
     ex, ey = px[k] - predx[t], py[k] - predy[t]
     good = (ex * ex + ey * ey <= FOURTH_TOLERANCE**2 * short2[t]) & (k > i[t]) & (k != l_[t])
     t, k = t[good], k[good]
     if t.size == 0:
         return empty, graph
-    quads = np.stack([i[t], j[t], k, l_[t]], axis=1)
-    quads = quads[_quad_geometry_ok(pts[quads], rad[quads])]
-    return idx[quads], graph
+    quads = np.array([i[t], j[t], k, l_[t]])  # (4, P)
+    quads = quads[:, _quad_geometry_ok(px.take(quads), py.take(quads), rad.take(quads))]
+    return idx.take(quads.T), graph
 
 
 # --------------------------------------------------------------------------------------
@@ -527,6 +568,23 @@ class _SamplePlan:
     cells: np.ndarray  # (n*n, S) samples in each code cell, row-major
     n: int
     core: np.ndarray  # discs and code: these must all lie in the image
+    #: `_measures_from` sorts five groups of samples in one call: discs, white, between
+    #: and gap, gap, edge (last: outside the image it reads inf), each lifted by its own
+    #: multiple of `_GROUP_LIFT` so that the groups sort apart.
+    sorted_index: np.ndarray  # (G,) sample indices, group after group
+    sorted_lift: np.ndarray  # (G,) float32 lift of each
+    sorted_groups: tuple[slice, slice, slice, slice, slice]  # each group's columns
+    #: Order statistics read off the sorted groups, each ``s[lo] + frac * (s[hi] - s[lo])``
+    #: (np.quantile's linear rule): disc median, white median, P90 and P10 of between and
+    #: gap, `WHITE_LOW_PERCENTILE` of white, 2nd lowest gap sample, lightest disc sample.
+    stats_lo: np.ndarray
+    stats_hi: np.ndarray
+    stats_frac: np.ndarray  # float32, as the Python float a float32 array would be scaled by
+
+
+#: Samples are whole grey levels (a uint8 image read by cv2.remap), so lifting a group by
+#: a multiple of this keeps it apart from the others and is undone exactly.
+_GROUP_LIFT = 1024.0
 
 
 @functools.cache
@@ -567,9 +625,27 @@ def _plan(n: int) -> _SamplePlan:
             centre = np.array([CODE_ORIGIN + (c + 0.5) * step, CODE_ORIGIN + (r + 0.5) * step])
             cells.append(add(centre + sub))
     cells_ = np.stack(cells)
+    white = np.concatenate([ring_, between, gap])
+    groups = [disc.ravel(), white, np.concatenate([between, gap]), gap, edge]
+    bounds = np.cumsum([0] + [g.size for g in groups])
+    stats = []
+    for k, q in ((0, 0.5), (1, 0.5), (2, 0.9), (2, 0.1), (1, WHITE_LOW_PERCENTILE / 100.0), (3, None), (0, None)):
+        size = groups[k].size
+        if q is None:  # the 2nd lowest gap sample, the lightest disc sample
+            at = 1 if k == 3 else size - 1
+            stats.append((bounds[k] + at, bounds[k] + at, 0.0))
+            continue
+        pos = q * (size - 1)
+        lo = int(np.floor(pos))
+        stats.append((bounds[k] + lo, bounds[k] + min(lo + 1, size - 1), pos - lo))
+    lo_, hi_, frac = zip(*stats, strict=True)
     plan = _SamplePlan(points=np.concatenate(pts), disc=disc, ring=ring_, between=between, gap=gap, edge=edge,
-                       white=np.concatenate([ring_, between, gap]), cells=cells_, n=n,
-                       core=np.concatenate([disc.ravel(), cells_.ravel()]))
+                       white=white, cells=cells_, n=n, core=np.concatenate([disc.ravel(), cells_.ravel()]),
+                       sorted_index=np.concatenate(groups),
+                       sorted_lift=np.repeat(_GROUP_LIFT * np.arange(len(groups)), [g.size for g in groups]
+                                             ).astype(np.float32),
+                       sorted_groups=tuple(slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)),
+                       stats_lo=np.array(lo_), stats_hi=np.array(hi_), stats_frac=np.array(frac, np.float32))
     return plan
 
 
@@ -633,36 +709,37 @@ class _Pyramid:
 
 
 def _sample(pyr: _Pyramid, hs: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples (P, M) float32 of card points `pts` through homographies `hs`,
-    each quadrilateral from the pyramid level whose pixel matches the sample spacing
-    (so a big card is not aliased), and a mask (P, M) of samples inside the image."""
-    p = hs.shape[0]
+    """Bilinear samples (P, M) float32 of card points `pts` (M, 2), or (M, 3)
+    homogeneous, through homographies `hs`, each quadrilateral from the pyramid level
+    whose pixel matches the sample spacing (so a big card is not aliased), and a mask
+    (P, M) of samples inside the image."""
+    p, m = hs.shape[0], pts.shape[0]
     if p == 0:
-        return np.zeros((0, pts.shape[0]), np.float32), np.zeros((0, pts.shape[0]), bool)
+        return np.zeros((0, m), np.float32), np.zeros((0, m), bool)
     xy = _apply(hs, pts)  # (P, M, 2) full-resolution pixels
-    gray = pyr.levels[0]
-    h, w = gray.shape
+    h, w = pyr.levels[0].shape
     # card side in pixels: sqrt(|det J|) at the card centre, det J = det H / w**3
     wc = 0.5 * (hs[:, 2, 0] + hs[:, 2, 1]) + hs[:, 2, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         spacing = np.sqrt(np.abs(np.linalg.det(hs) / (wc * wc * wc))) / SAMPLES_PER_CARD
     spacing = np.where(np.isfinite(spacing), spacing, 1.0)
-    level = np.clip(np.floor(np.log2(np.maximum(spacing, 1.0))), 0, pyr.max_level).astype(int)
-    finite = np.isfinite(xy).all(axis=-1)
-    x, y = xy[..., 0], xy[..., 1]
-    inside = finite & (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
-    xy = np.where(finite[..., None], xy, -10.0).astype(np.float32)
+    level = np.minimum(np.floor(np.log2(np.maximum(spacing, 1.0))), pyr.max_level).astype(int)
+    # NaN and inf compare False: outside
+    inside = ((xy >= -0.5) & (xy <= np.array([w - 0.5, h - 0.5]))).all(axis=-1)
+    if not np.isfinite(xy.sum()):
+        xy = np.where(np.isfinite(xy).all(axis=-1)[..., None], xy, -10.0)
+    xy = xy.astype(np.float32)
     lv0 = int(level[0])
     if (level == lv0).all():
         if lv0:
             xy *= np.float32(0.5**lv0)
         out = cv2.remap(pyr.get(lv0), xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return out.reshape(p, pts.shape[0]).astype(np.float32), inside
-    out = np.zeros((p, pts.shape[0]), np.float32)
+        return out.reshape(p, m).astype(np.float32), inside
+    out = np.zeros((p, m), np.float32)
     for lv in np.unique(level).tolist():
         rows = np.flatnonzero(level == lv)
-        m = xy[rows] * np.float32(0.5**lv)
-        out[rows] = cv2.remap(pyr.get(lv), m, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[rows] = cv2.remap(pyr.get(lv), xy[rows] * np.float32(0.5**lv), None, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
     return out, inside
 
 
@@ -693,7 +770,7 @@ def _quick_check(pyr: _Pyramid, hs: np.ndarray) -> np.ndarray:
 def _quick_from(vals: np.ndarray, inside: np.ndarray) -> np.ndarray:
     """`_quick_check` of the samples (P, 16) of `_QUICK_POINTS` and their mask."""
     disc = vals[:, :4]
-    black = disc.mean(axis=1)
+    black = _mean(disc, 1)
     wv = np.sort(vals[:, 4:], axis=1)
     white = 0.5 * (wv[:, 5] + wv[:, 6])  # median of 12
     c = white - black
@@ -721,9 +798,7 @@ class _Measures:
     gap_low: np.ndarray  # (P,) 2nd lowest gap sample
     edge_level: np.ndarray  # (P,) median of the card margin near its edge
     valid: np.ndarray  # (P,) fraction of samples inside the image (0 if discs or code are not)
-    cells: np.ndarray  # (P, n*n) code cell means
-    cell_lo: np.ndarray  # (P, n*n) darkest sub-sample of each cell
-    cell_hi: np.ndarray  # (P, n*n) lightest sub-sample of each cell
+    cells: np.ndarray | None  # (P, n*n) code cell means (None: not read)
 
     def passed(self, coarse: bool = False) -> np.ndarray:
         """All checks; `coarse`: before refinement, looser on the disc levels (a
@@ -743,6 +818,13 @@ class _Measures:
         return {k: getattr(self, k) for k in self.__dataclass_fields__ if not k.startswith("cell")}
 
 
+def _mean(x: np.ndarray, axis: int) -> np.ndarray:
+    """``x.mean(axis)`` by np.mean's own arithmetic (the sum divided by an intp count)
+    without its Python overhead (~5 us a call)."""
+    s = x.sum(axis=axis)
+    return np.true_divide(s, np.intp(x.shape[axis]), out=s, casting="unsafe")
+
+
 def _quantile_sorted(v: np.ndarray, q: float) -> np.ndarray:
     """Quantile q of each row of the row-sorted array v (linear interpolation)."""
     pos = q * (v.shape[1] - 1)
@@ -753,47 +835,62 @@ def _quantile_sorted(v: np.ndarray, q: float) -> np.ndarray:
 
 def _measure(pyr: _Pyramid, hs: np.ndarray, n: int) -> _Measures:
     """Photometric measurements of the card hypotheses `hs` (P, 3, 3) (layout -> image)
-    for a family of n x n codes. Sorting once per group replaces np.median and
-    np.percentile, which cost ~50 us a call."""
+    for a family of n x n codes."""
     plan = _plan(n)
-    vals, inside = _sample(pyr, hs, plan.points)
+    vals, inside = _sample(pyr, hs, _plan_points_h(n))
     return _measures_from(vals, inside, plan)
 
 
 @functools.cache
+def _plan_points_h(n: int) -> np.ndarray:
+    """The sample points of `_plan(n)`, homogeneous."""
+    return _homogeneous(_plan(n).points)
+
+
+@functools.cache
 def _plan_and_quick(n: int) -> np.ndarray:
-    """The sample points of `_plan(n)` followed by `_QUICK_POINTS`."""
-    return np.concatenate([_plan(n).points, _QUICK_POINTS])
+    """The sample points of `_plan(n)` followed by `_QUICK_POINTS`, homogeneous."""
+    return _homogeneous(np.concatenate([_plan(n).points, _QUICK_POINTS]))
 
 
-def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan) -> _Measures:
-    """`_measure` of the samples (P, M) of `plan.points` and their mask."""
+def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan, cells: bool = True) -> _Measures:
+    """`_measure` of the samples (P, M) of `plan.points` (whole grey levels: a uint8
+    image read by cv2.remap) and their mask; `cells`: read the code cells too. One sort
+    of the lifted groups (`_SamplePlan.sorted_index`) replaces np.median and
+    np.percentile (~50 us a call) and a sort per group."""
     p = vals.shape[0]
-    disc_vals = vals[:, plan.disc]  # (P, 4, D)
-    black = _quantile_sorted(np.sort(disc_vals.reshape(p, -1), axis=1), 0.5)
-    white_sorted = np.sort(vals[:, plan.white], axis=1)
-    white = _quantile_sorted(white_sorted, 0.5)
+    s = vals.take(plan.sorted_index, axis=1)  # (ndarray.take: several times cheaper than fancy indexing)
+    s += plan.sorted_lift
+    inside_edge = inside.take(plan.edge, axis=1)
+    s[:, plan.sorted_groups[4]][~inside_edge] = np.inf  # outside the image: no evidence
+    s.sort(axis=1)
+    s -= plan.sorted_lift
+    # every order statistic at once (`_SamplePlan.stats_lo`), as `_quantile_sorted` would
+    lo = s.take(plan.stats_lo, axis=1)
+    q = lo + plan.stats_frac * (s.take(plan.stats_hi, axis=1) - lo)
+    black, white = q[:, 0], q[:, 1]
     contrast = white - black
     c = np.maximum(contrast, 1e-3)
-    inner = np.sort(vals[:, np.concatenate([plan.between, plan.gap])], axis=1)
-    uniformity = (_quantile_sorted(inner, 0.9) - _quantile_sorted(inner, 0.1)) / c
-    disc_means = (disc_vals.mean(axis=2) - black[:, None]) / c[:, None]
-    white_low = (_quantile_sorted(white_sorted, WHITE_LOW_PERCENTILE / 100.0) - black) / c
-    gap_low = (np.sort(vals[:, plan.gap], axis=1)[:, 1] - black) / c
-    edge = np.where(inside[:, plan.edge], vals[:, plan.edge], np.inf)  # outside: no evidence
-    edge_sorted = np.sort(edge, axis=1)
-    n_in = inside[:, plan.edge].sum(axis=1)
-    edge_med = np.take_along_axis(edge_sorted, np.maximum(n_in // 2, 0)[:, None], axis=1)[:, 0]
+    uniformity = (q[:, 2] - q[:, 3]) / c
+    white_low, gap_low, disc_max = ((q[:, 4:] - black[:, None]) / c[:, None]).T
+    disc_means = (_mean(vals.take(plan.disc, axis=1), 2) - black[:, None]) / c[:, None]
+    n_in = np.count_nonzero(inside_edge, axis=1)
+    edge_med = s[np.arange(p), plan.sorted_groups[4].start + n_in // 2]
     edge_level = np.where(n_in >= 4, (edge_med - black) / c, 1.0)
-    cell_vals = (vals[:, plan.cells] - black[:, None, None]) / c[:, None, None]  # (P, n*n, S)
     # Discs and code must be wholly in the image; the white margin mostly.
-    valid = np.where(inside[:, plan.core].all(axis=1), inside.mean(axis=1), 0.0)
+    valid = np.where(inside.take(plan.core, axis=1).all(axis=1), np.count_nonzero(inside, axis=1) / inside.shape[1],
+                     0.0)
     dmax, dmin = disc_means.max(axis=1), disc_means.min(axis=1)
-    disc_max = (disc_vals.reshape(p, -1).max(axis=1) - black) / c
+    cell_means = None
+    if cells:
+        # (P, n*n, S); fancy indexing, not take: its (n*n, S, P) memory layout carries into
+        # the template fit, whose float32 sums depend on it
+        cell_vals = (vals[:, plan.cells] - black[:, None, None]) / c[:, None, None]
+        cell_means = _mean(cell_vals, 2)
     return _Measures(
         black=black, white=white, contrast=contrast, uniformity=uniformity,
-        disc_level=dmax, disc_spread=dmax - dmin, disc_max=disc_max, white_low=white_low, gap_low=gap_low, edge_level=edge_level,
-        valid=valid, cells=cell_vals.mean(axis=2), cell_lo=cell_vals.min(axis=2), cell_hi=cell_vals.max(axis=2),
+        disc_level=dmax, disc_spread=dmax - dmin, disc_max=disc_max, white_low=white_low, gap_low=gap_low,
+        edge_level=edge_level, valid=valid, cells=cell_means,
     )
 
 
@@ -1001,10 +1098,14 @@ def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY) -> CodeMatch |
     return CodeMatch(id=int(ids[0]), shift=int(shifts[0]), fit=float(fit[0]), gap=float(gap[0]))
 
 
-def _reorder(quads_px: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """Discs in DESIGN order: card disc j is quadrilateral vertex (j - s) % 4."""
-    j = (np.arange(4)[None, :] - shifts[:, None]) % 4
-    return np.take_along_axis(quads_px, j[..., None], axis=1)
+#: `_DESIGN_ORDER[s][j]`: the quadrilateral vertex (j - s) % 4 that is card disc j.
+_DESIGN_ORDER = (np.arange(4)[None, :] - np.arange(4)[:, None]) % 4
+
+
+def _reorder(quad: np.ndarray, shift: int) -> np.ndarray:
+    """A quadrilateral's rows (4, ...) in DESIGN order, for vertex shift `shift` (vertex
+    m is card disc (m + shift) % 4)."""
+    return quad[_DESIGN_ORDER[shift]]
 
 
 def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
@@ -1021,7 +1122,7 @@ def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
     match = decode_cells(m.cells[0], family)
     if match is None:
         return None
-    return match.id, _reorder(q, np.array([match.shift]))[0], match
+    return match.id, _reorder(q[0], match.shift), match
 
 
 # --------------------------------------------------------------------------------------
@@ -1030,8 +1131,8 @@ def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
 
 
 def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE_ITERATIONS,
-                   correct_perspective: bool = True, _pyramid: _Pyramid | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   correct_perspective: bool = True, _pyramid: _Pyramid | None = None,
+                   _homographies: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Subpixel disc centres of cards: `discs` (T, 4, 2) approximate centres (layout
     orientation, any start) -> (centres (T, 4, 2), radii (T, 4) in pixels).
 
@@ -1053,36 +1154,36 @@ def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE
     the previous centres, and up to `REFINE_EXTRA_ITERATIONS` more while centres still
     move (a candidate far off its disc); the ring's white level is kept from the
     previous pass once the centres have settled. Radii: sqrt(dark area / pi), the area being the summed
-    darkness over the disc-vs-white contrast.
+    darkness over the disc-vs-white contrast. `_homographies`: those of `discs`, if known.
     """
     gray = _as_gray(gray)
     pyr = _pyramid if _pyramid is not None else _Pyramid(gray)
     cur = np.array(discs, np.float64).reshape(-1, 4, 2)
     t = cur.shape[0]
-    radii = np.zeros((t, 4))
     if t == 0 or not np.isfinite(cur).all():
-        return cur, radii
+        return cur, np.zeros((t, 4))
     centroid = cur.copy()  # the image-ellipse centres (what the window is centred on)
     reach = REFINE_WINDOW + REFINE_TAPER
     white = np.full((t, 4), np.nan)  # ring medians, measured again only while centres move
-    level = None
+    total = contrast = None  # of the last pass: the radii
+    groups: list[tuple[int, np.ndarray | None]] = []
     moved = np.inf
     for it in range(max(1, iterations) + REFINE_EXTRA_ITERATIONS):
         if it >= max(1, iterations) and moved < REFINE_SETTLED:
             break
-        hs = homographies(cur)
+        hs = _homographies if it == 0 and _homographies is not None else homographies(cur)
         jac = _jacobians(hs, DISC_CENTRES)  # (T, 4, 2, 2) image offset per card offset
-        det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-        if not (np.isfinite(det).all() and (np.abs(det) > 1e-9).all()):
+        det = np.abs(jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0])
+        if not (det.min() > 1e-9 and det.max() < np.inf):  # False for NaN too
             break
-        if level is None:
+        if not groups:
             # Half-extent of each window along x and y: reach * R * |row of J|; the level
             # is chosen once.
             ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
                                                            jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2)).max(axis=1)
-            level = np.clip(np.ceil(np.log2(np.maximum((ext + 1.0) / REFINE_MAX_HALF, 1.0))), 0,
-                            pyr.max_level).astype(int)
-            levels = np.unique(level).tolist()
+            level = np.minimum(np.ceil(np.log2(np.maximum((ext + 1.0) / REFINE_MAX_HALF, 1.0))),
+                               pyr.max_level).astype(int)
+            levels = sorted(set(level.tolist()))
             groups = [(lv, None if len(levels) == 1 else np.flatnonzero(level == lv)) for lv in levels]
         # The white ring is measured around the current centroid: again while the centres
         # still move (a candidate far off its disc puts the first ring partly on it).
@@ -1108,18 +1209,39 @@ def refine_centres(gray: np.ndarray, discs: np.ndarray, iterations: int = REFINE
                 total[rows] = tot * scale * scale
                 contrast[rows] = con
                 white[rows] = wh
-        good = total > 1e-6
-        centroid = np.where(good[..., None], new_centroid, centroid)
-        new = centroid
-        if correct_perspective:
-            bias = _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - _apply(hs, DISC_CENTRES)
-            new = centroid - bias
-        prev, cur = cur, np.where(good[..., None], new, cur)
-        radii = np.sqrt(np.maximum(total / np.maximum(contrast, 1e-3), 0.0) / np.pi)
+        good = (total > 1e-6)[..., None]
+        centroid = np.where(good, new_centroid, centroid)
+        new = centroid - _perspective_bias(hs) if correct_perspective else centroid
+        prev, cur = cur, np.where(good, new, cur)
         moved = float(np.abs(cur - prev).max())
         if moved < REFINE_CONVERGED:
             break
-    return cur, radii
+    if total is None:
+        return cur, np.zeros((t, 4))
+    return cur, np.sqrt(np.maximum(total / np.maximum(contrast, 1e-3), 0.0) / np.pi)
+
+
+def _windows_u8(img: np.ndarray, x0: np.ndarray, y0: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The `size` x `size` pixel windows of `img` with top-left pixels (x0, y0) (D,):
+    (D, size, size) uint8, and where they overhang the image (None if none does) a mask
+    of the pixels inside, the others repeating the nearest edge pixel. A window inside
+    is a view of the image: one fancy index of a strided view copies them all (cheaper
+    than gathering flat pixel indices)."""
+    h, w = img.shape
+    xs, ys = x0.tolist(), y0.tolist()  # (a few: Python's min and max are cheaper)
+    if xs and min(xs) >= 0 and min(ys) >= 0 and max(xs) + size <= w and max(ys) + size <= h:
+        s0, s1 = img.strides
+        shape, strides = (h - size + 1, w - size + 1, size, size), (s0, s1, s0, s1)
+        if img.flags.c_contiguous:  # (np.ndarray on the buffer: as_strided costs ~4 us more)
+            view = np.ndarray(shape, np.uint8, img, 0, strides)
+        else:
+            view = np.lib.stride_tricks.as_strided(img, shape, strides)
+        return view[y0, x0], None
+    offs = np.arange(size)
+    xi = x0[:, None, None] + offs[None, None, :]  # (D, 1, S)
+    yi = y0[:, None, None] + offs[None, :, None]  # (D, S, 1)
+    valid = ((xi >= 0) & (xi < w)) & ((yi >= 0) & (yi < h))
+    return img[np.clip(yi, 0, h - 1), np.clip(xi, 0, w - 1)], valid
 
 
 def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach: float,
@@ -1128,40 +1250,45 @@ def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach
     `jac` (T, 4, 2, 2) the image offset per card offset at each disc: (new centroids,
     summed darkness (T, 4), white - black (T, 4))."""
     t = centroid.shape[0]
-    h, w = img.shape
-    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    j00, j01, j10, j11 = jac[..., 0, 0], jac[..., 0, 1], jac[..., 1, 0], jac[..., 1, 1]
+    det = j00 * j11 - j01 * j10
     # inverse Jacobian over the disc radius: disc radii per image offset
     s = 1.0 / (det * DISC_RADIUS)
-    a00, a01 = jac[..., 1, 1] * s, -jac[..., 0, 1] * s
-    a10, a11 = -jac[..., 1, 0] * s, jac[..., 0, 0] * s
-    ext = reach * DISC_RADIUS * np.sqrt(np.maximum(jac[..., 0, 0] ** 2 + jac[..., 0, 1] ** 2,
-                                                   jac[..., 1, 0] ** 2 + jac[..., 1, 1] ** 2))
+    a = (np.array([j11, -j01, -j10, j00]) * s).astype(np.float32)[..., None, None]
+    ext = reach * DISC_RADIUS * np.sqrt((jac * jac).sum(axis=-1).max(axis=-1))  # reach * R * longest row of J
     k = int(np.ceil(ext.max())) + 1
-    offs = np.arange(-k, k + 1)
+    size = 2 * k + 1
     base = np.rint(centroid).astype(np.intp)  # (T, 4, 2)
-    xi = base[..., 0, None, None] + offs[None, None, None, :]  # (T, 4, 1, S)
-    yi = base[..., 1, None, None] + offs[None, None, :, None]  # (T, 4, S, 1)
-    valid = ((xi >= 0) & (xi < w)) & ((yi >= 0) & (yi < h))
-    pix8 = np.take(img.reshape(-1), np.clip(yi, 0, h - 1) * w + np.clip(xi, 0, w - 1))  # (T, 4, S, S) uint8
+    pix8, valid = _windows_u8(img, base[..., 0].ravel() - k, base[..., 1].ravel() - k, size)
+    pix8 = pix8.reshape(t, 4, size, size)
+    if valid is not None:
+        valid = valid.reshape(t, 4, size, size)
     # float32 from here: sums of ~1000 terms stay far below 1e-3 px of centroid error
     f32 = np.float32
-    dx = (base[..., 0, None, None] - centroid[..., 0, None, None]).astype(f32) + offs[None, None, None, :].astype(f32)
-    dy = (base[..., 1, None, None] - centroid[..., 1, None, None]).astype(f32) + offs[None, None, :, None].astype(f32)
-    a00, a01, a10, a11 = (q[..., None, None].astype(f32) for q in (a00, a01, a10, a11))
-    u = a00 * dx + a01 * dy
-    v = a10 * dx + a11 * dy
+    offs = np.arange(-k, k + 1).astype(f32)
+    off = (base - centroid).astype(f32)  # (T, 4, 2)
+    dx = off[..., 0, None, None] + offs[None, None, None, :]  # (T, 4, 1, S)
+    dy = off[..., 1, None, None] + offs[None, None, :, None]  # (T, 4, S, 1)
+    u = a[0] * dx + a[1] * dy
+    v = a[2] * dx + a[3] * dy
     rho2 = u * u + v * v  # squared distance from the centroid in disc radii, on the card
     if white is None:
-        ring = valid & (rho2 >= f32(REFINE_RING[0] ** 2)) & (rho2 <= f32(REFINE_RING[1] ** 2))
-        white = _masked_median_u8(pix8.reshape(t, 4, -1), ring.reshape(t, 4, -1))
+        ring = (rho2 >= f32(REFINE_RING[0] ** 2)) & (rho2 <= f32(REFINE_RING[1] ** 2))
+        if valid is not None:
+            ring &= valid
+        white = _masked_median_u8(pix8.reshape(t * 4, -1), ring.reshape(t * 4, -1)).reshape(t, 4)
     pix = pix8.astype(f32)
-    inner = valid & (rho2 <= f32(0.25))
+    inner = rho2 <= f32(0.25)
+    if valid is not None:
+        inner &= valid
     black = (pix * inner).sum(axis=(2, 3)) / np.maximum(inner.sum(axis=(2, 3)), 1)
     taper = np.sqrt(rho2)
     np.subtract(f32(reach), taper, out=taper)
     taper *= f32(1.0 / REFINE_TAPER)
-    np.clip(taper, f32(0.0), f32(1.0), out=taper)
-    taper *= valid
+    np.minimum(taper, f32(1.0), out=taper)
+    np.maximum(taper, f32(0.0), out=taper)
+    if valid is not None:
+        taper *= valid
     weight = np.subtract(np.where(np.isfinite(white), white, 0.0).astype(f32)[..., None, None], pix, out=pix)
     np.maximum(weight, f32(0.0), out=weight)
     weight *= taper
@@ -1171,34 +1298,32 @@ def _centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndarray, reach
     # first moments: the row sums against dx, the column sums against dy
     mx = (weight.sum(axis=2) * dx[..., 0, :]).sum(axis=-1) / safe
     my = (weight.sum(axis=3) * dy[..., :, 0]).sum(axis=-1) / safe
-    new = centroid + np.stack([mx, my], -1)
-    return np.where(good[..., None], new, centroid), np.where(good, total, 0.0), white - black, white
+    new = centroid.copy()
+    new[..., 0] += np.where(good, mx, 0.0)
+    new[..., 1] += np.where(good, my, 0.0)
+    return new, np.where(good, total, 0.0), white - black, white
 
 
 def _masked_median_u8(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Median over the last axis of the uint8 `values` where `mask` is set (NaN if
-    none): one radix sort (numpy's stable sort of 16-bit keys) with the masked-out
-    entries sorting last; cheaper than a float sort or np.nanmedian's per-row loop."""
-    v = np.where(mask, values, np.uint16(512)).astype(np.uint16, copy=False)
-    v.sort(axis=-1, kind="stable")
-    count = mask.sum(axis=-1)
-    lo = np.take_along_axis(v, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
-    hi = np.take_along_axis(v, np.maximum(count // 2, 0)[..., None], axis=-1)[..., 0]
+    """Median of each row of the uint8 `values` (D, K) where `mask` is set (NaN if
+    none): from the rows' 256-bin histograms (one bincount), cheaper than sorting."""
+    d = values.shape[0]
+    key = values + np.arange(0, 256 * d, 256, dtype=np.intp)[:, None]  # row r: 256 r + value
+    hist = np.bincount(key[mask], minlength=d * 256).reshape(d, 256)
+    cum = hist.cumsum(axis=1)
+    count = cum[:, -1]
+    # sorted position q holds the smallest value v with cum[v] > q
+    lo = (cum <= np.maximum((count - 1) // 2, 0)[:, None]).sum(axis=1)
+    hi = (cum <= (count // 2)[:, None]).sum(axis=1)
     return np.where(count > 0, 0.5 * (lo.astype(np.float64) + hi), np.nan)
 
 
 def _jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """(P, K, 2, 2) Jacobians d(image)/d(card) of each homography at card points (K, 2)."""
     x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
-    w = x[..., 2]
-    u = x[..., 0] / w
-    v = x[..., 1] / w
-    j = np.empty(x.shape[:2] + (2, 2))
-    j[..., 0, 0] = (hs[:, None, 0, 0] - u * hs[:, None, 2, 0]) / w
-    j[..., 0, 1] = (hs[:, None, 0, 1] - u * hs[:, None, 2, 1]) / w
-    j[..., 1, 0] = (hs[:, None, 1, 0] - v * hs[:, None, 2, 0]) / w
-    j[..., 1, 1] = (hs[:, None, 1, 1] - v * hs[:, None, 2, 1]) / w
-    return j
+    w = x[..., 2, None, None]  # (P, K, 1, 1)
+    # row r: (H[r, :2] - image[r] * H[2, :2]) / w, image[r] = x[r] / w
+    return (hs[:, None, :2, :2] - x[..., :2, None] / w * hs[:, None, None, 2, :2]) / w
 
 
 # --------------------------------------------------------------------------------------
@@ -1223,10 +1348,9 @@ def _predicted_radii(hs: np.ndarray) -> np.ndarray:
     return DISC_RADIUS * np.sqrt(np.abs(jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]))
 
 
-def _radius_spread(hs: np.ndarray, radii: np.ndarray) -> np.ndarray:
+def _radius_spread(pred: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """(P,) log(max / min) over the four discs of measured radius / radius predicted by
-    the homography."""
-    pred = _predicted_radii(hs)
+    the homography (`_predicted_radii`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.log(np.maximum(radii, 1e-9) / np.maximum(pred, 1e-9))
     spread = ratio.max(axis=1) - ratio.min(axis=1)
@@ -1235,14 +1359,14 @@ def _radius_spread(hs: np.ndarray, radii: np.ndarray) -> np.ndarray:
 
 def _score(m: _Measures, rows: np.ndarray, gap: np.ndarray) -> np.ndarray:
     """Confidence 0..1 from how clearly each check passed (the weakest one)."""
-    parts = np.stack([
-        np.clip(gap[rows] / (4 * CODE_GAP_MIN), 0, 1) if gap.size else np.ones(rows.size),
-        np.clip((MAX_DISC_LEVEL + 0.15 - m.disc_level[rows]) / (MAX_DISC_LEVEL + 0.15), 0, 1),
-        np.clip((m.white_low[rows] - MIN_WHITE_LOW + 0.1) / (1.1 - MIN_WHITE_LOW), 0, 1),
-        np.clip((m.gap_low[rows] - MIN_GAP_LEVEL + 0.1) / (1.1 - MIN_GAP_LEVEL), 0, 1),
-        np.clip((MAX_WHITE_SPREAD + 0.1 - m.uniformity[rows]) / (MAX_WHITE_SPREAD + 0.1), 0, 1),
+    parts = np.array([
+        gap[rows] / (4 * CODE_GAP_MIN) if gap.size else np.ones(rows.size),
+        (MAX_DISC_LEVEL + 0.15 - m.disc_level[rows]) / (MAX_DISC_LEVEL + 0.15),
+        (m.white_low[rows] - MIN_WHITE_LOW + 0.1) / (1.1 - MIN_WHITE_LOW),
+        (m.gap_low[rows] - MIN_GAP_LEVEL + 0.1) / (1.1 - MIN_GAP_LEVEL),
+        (MAX_WHITE_SPREAD + 0.1 - m.uniformity[rows]) / (MAX_WHITE_SPREAD + 0.1),
     ])
-    return parts.min(axis=0) ** 0.5
+    return np.clip(parts, 0, 1).min(axis=0) ** 0.5
 
 
 def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEFAULT_FAMILY,
@@ -1308,14 +1432,14 @@ def _judge(gray: np.ndarray, pyr: _Pyramid, pts: np.ndarray, n: int, family: str
         if clock is not None:
             clock.lap("verify", quick=0)
         return None
-    m = _measures_from(vals[quick, :n_plan], inside[quick, :n_plan], plan)
+    m = _measures_from(vals.take(quick, axis=0), inside.take(quick, axis=0)[:, :n_plan], plan, cells=False)
     keep = quick[m.passed(coarse=True)]
     if clock is not None:
         clock.lap("verify", quick=quick.size, verified=keep.size)
     if keep.size == 0:
         return None
-    pts = pts[keep]
-    refined, radii = refine_centres(gray, pts, _pyramid=pyr)
+    pts = pts.take(keep, axis=0)
+    refined, radii = refine_centres(gray, pts, _pyramid=pyr, _homographies=hs.take(keep, axis=0))
     if clock is not None:
         clock.lap("refine")
     hs = homographies(refined)
@@ -1328,13 +1452,15 @@ def _judge(gray: np.ndarray, pyr: _Pyramid, pts: np.ndarray, n: int, family: str
     # Refinement must stay on its candidate's disc (not be pulled to a neighbour):
     # within 80% of the disc radius the homography predicts (a candidate may sit ~0.6
     # radii off its disc).
-    moved = np.hypot(*(refined - pts).transpose(2, 0, 1))
-    ok &= (moved <= np.maximum(2.0, np.asarray(max_shift) * _predicted_radii(hs))).all(axis=1)
+    d = refined - pts
+    moved = np.hypot(d[..., 0], d[..., 1])
+    pred = _predicted_radii(hs)
+    ok &= (moved <= np.maximum(2.0, np.asarray(max_shift) * pred)).all(axis=1)
     # Four points fix a homography exactly, so a disc of another card (an overlapping
     # one) or a half-hidden disc still gives a consistent-looking quadrilateral; its dark
     # area, though, disagrees with the size the homography predicts for it. Blur and
     # exposure scale all four alike, so only the spread of the ratios is tested.
-    ok &= _radius_spread(hs, radii) <= MAX_RADIUS_SPREAD
+    ok &= _radius_spread(pred, radii) <= MAX_RADIUS_SPREAD
     # A sound card whose code the isotropic templates cannot read: motion blur?
     again = np.flatnonzero(ok & ~decoded)[:max(motion_reads, 0)]
     if again.size:
@@ -1378,35 +1504,19 @@ def _corner_triples(g: _Graph, free: np.ndarray, img: np.ndarray, scale: float, 
     Returns i, j, l and the predictions (T, 2)."""
     z = np.zeros(0, np.intp)
     none = z, z, z, np.zeros((0, 2))
-    sel = np.flatnonzero(free[g.src] & free[g.dst])
-    if sel.size < 2 or g.dark is None or g.white is None:
+    if g.corners is None or g.corner_white is None or g.dark is None:
         return none
-    p = g.pts
-    n = p.shape[0]
-    dark = g.dark
-    src, dst, white = g.src[sel], g.dst[sel], g.white[sel]  # still by apex
-    deg = np.bincount(src, minlength=n)
-    row_start = np.cumsum(deg) - deg
-    pos = np.arange(src.size)
-    more = row_start[src] + deg[src] - pos - 1
-    tot = int(more.sum())
-    if tot == 0:
-        return none
-    first = np.repeat(pos, more)
-    second = np.arange(tot) - np.repeat(np.cumsum(more) - more, more) + np.repeat(pos + 1, more)
-    i, j, l_ = src[first], dst[first], dst[second]
-    white = np.minimum(white[first], white[second])
-    j, l_, _, ok = _card_corners(p, g.rad, i, j, l_)
-    rj, rl = g.rad[j], g.rad[l_]
-    ok &= (rj <= RADIUS_RATIO_MAX * rl) & (rl <= RADIUS_RATIO_MAX * rj)
-    sel = np.flatnonzero(ok)
+    # the grouping's corners (`_Graph.corners`) of free candidates only
+    sel = np.flatnonzero(free.take(g.corners).all(axis=0))
     if sel.size == 0:
         return none
-    i, j, l_, white = i[sel], j[sel], l_[sel], white[sel]
-    pi, pj, pl = p[i], p[j], p[l_]
+    tri = g.corners.take(sel, axis=1)  # (3, T): i, j, l
+    i, j, l_ = tri
+    pi, pj, pl = g.pts.take(tri, axis=0)  # (T, 2) each
     pred = pj + pl - pi
-    black = (dark[i] + dark[j] + dark[l_]) * (1.0 / 3.0)
-    con = white - black
+    dark = g.dark.take(tri)
+    black = (dark[0] + dark[1] + dark[2]) * (1.0 / 3.0)
+    con = g.corner_white.take(sel) - black
     # the fourth disc, and halfway to it from j and from l (the other two sides)
     q = (np.concatenate([pred, 0.5 * (pj + pred), 0.5 * (pl + pred)]) * scale).astype(np.float32).reshape(1, -1, 2)
     look4 = cv2.remap(img, q, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(3, -1).astype(np.float32)
@@ -1415,24 +1525,25 @@ def _corner_triples(g: _Graph, free: np.ndarray, img: np.ndarray, scale: float, 
     sel = np.flatnonzero(ok)
     if sel.size == 0:
         return none
-    i, j, l_, pi, pj, pl, pred = i[sel], j[sel], l_[sel], pi[sel], pj[sel], pl[sel], pred[sel]
-    # a first look at the card (a parallelogram: the layout maps affinely) on `full`
     if full is not None:
+        # a first look at the card (a parallelogram: the layout maps affinely) on `full`
+        pi, pj, pl = pi.take(sel, axis=0), pj.take(sel, axis=0), pl.take(sel, axis=0)
         f = _corner_look_points()
         xy = pi[:, None, :] + f[None, :, :1] * (pj - pi)[:, None, :] + f[None, :, 1:] * (pl - pi)[:, None, :]
         vals = cv2.remap(full, xy.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        sel = np.flatnonzero(_corner_look(vals.astype(np.float32)))
+        look = np.flatnonzero(_corner_look(vals.astype(np.float32)))
+        sel = sel.take(look)
         if sel.size:
             # then the coarse verification, on the same affine guess
-            i, j, l_, pi, pj, pl, pred = i[sel], j[sel], l_[sel], pi[sel], pj[sel], pl[sel], pred[sel]
-            plan = _plan(n_cells)
+            pi, pj, pl = pi.take(look, axis=0), pj.take(look, axis=0), pl.take(look, axis=0)
             f = _plan_affine(n_cells)
             xy = pi[:, None, :] + f[None, :, :1] * (pj - pi)[:, None, :] + f[None, :, 1:] * (pl - pi)[:, None, :]
             hf, wf = full.shape
             inside = ((xy >= -0.5) & (xy <= np.array([wf - 0.5, hf - 0.5]))).all(axis=-1)
             vals = cv2.remap(full, xy.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            sel = np.flatnonzero(_measures_from(vals.astype(np.float32), inside, plan).passed(coarse=True))
-    return i[sel], j[sel], l_[sel], pred[sel]
+            coarse = _measures_from(vals.astype(np.float32), inside, _plan(n_cells), cells=False).passed(coarse=True)
+            sel = sel.compress(coarse)
+    return i.take(sel), j.take(sel), l_.take(sel), pred.take(sel, axis=0)
 
 
 #: `_corner_look`: looser than the coarse verification (an affine guess of a card).
@@ -1474,7 +1585,7 @@ def _corner_look(vals: np.ndarray) -> np.ndarray:
     between them, around the code and around the discs, uniform (the coarse checks of
     `_Measures`, looser)."""
     disc = vals[:, :4]
-    black = disc.mean(axis=1)
+    black = _mean(disc, 1)
     w = np.sort(vals[:, 4:28], axis=1)  # 24 between and in the gap
     white = 0.5 * (w[:, 11] + w[:, 12])
     c = white - black
@@ -1501,10 +1612,10 @@ def _complete(gray: np.ndarray, pyr: _Pyramid, g: _Graph, found: list[DetectedTa
         # nothing on a card found already (its discs, its code cells) is free: inside the
         # card outline, approximated by the disc quadrilateral scaled about its centre by
         # 0.5 / 0.3 (a little more)
-        q = np.stack([t.discs for t in found])  # (F, 4, 2), clockwise on screen
-        cen = q.mean(axis=1, keepdims=True)
+        q = np.array([t.discs for t in found])  # (F, 4, 2), clockwise on screen
+        cen = _mean(q, 1)[:, None]
         c = cen + 1.7 * (q - cen)
-        e = np.roll(c, -1, axis=1) - c  # (F, 4, 2) outline edges
+        e = c[:, _NEXT] - c  # (F, 4, 2) outline edges
         d = g.pts[None, None, :, :] - c[:, :, None, :]  # (F, 4, N, 2)
         inside = (e[:, :, None, 0] * d[..., 1] - e[:, :, None, 1] * d[..., 0] >= 0).all(axis=1).any(axis=0)
         free &= ~inside
@@ -1575,10 +1686,9 @@ def _select(ok: np.ndarray, m: _Measures, gap: np.ndarray, ids: np.ndarray, shif
             continue
         used_ids.add(tid)
         used_cands |= members
-        s = np.array([shifts[r]])
-        discs = _reorder(refined[r : r + 1], s)[0]
-        rad = _reorder(radii[r : r + 1, :, None], s)[0, :, 0]
-        out.append(DetectedTarget(id=tid, discs=discs, score=float(score_of[r]), disc_radii=rad))
+        order = _DESIGN_ORDER[shifts[r]]
+        out.append(DetectedTarget(id=tid, discs=refined[r][order], score=float(score_of[r]),
+                                  disc_radii=radii[r][order]))
     return out
 
 
