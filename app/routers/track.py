@@ -74,6 +74,12 @@ async def track(websocket: WebSocket, environment_id: str | None = None) -> None
     A client over ``max_track_fps`` loses its excess frames the same way (never the
     newest) and gets at most one ``rate_limited`` error a second; connections beyond
     ``max_track_connections`` are closed with 1013 (try again later).
+
+    Each connection keeps its own tracking state: its previous poses predict where the
+    map's targets are, and only those regions are searched (config ``regions``, on by
+    default; ``full_scan_every``). Each reply says ``scan`` ("full" or "regions") and
+    ``scan_reason`` (first, regions, periodic, lost, fallback, wide, stale, camera, off);
+    ``timing_ms.regions`` counts the regions searched.
     """
     app = websocket.app
     settings = app.state.settings
@@ -201,13 +207,15 @@ async def _refuse(websocket: WebSocket, code: str, message: str, close_code: int
 
 
 class _Session:
-    """Per-connection state: the newest unprocessed frame, counters and config."""
+    """Per-connection state: the newest unprocessed frame, counters, config and the
+    tracking state (frames of one connection are processed one at a time, in order)."""
 
     def __init__(self, context: tracking.TrackingContext, bucket: _TokenBucket) -> None:
         self.context = context
         self.bucket = bucket
         self.rate_notice_at = -1e9  # monotonic time of the last rate_limited message
         self.config = TrackConfig()
+        self.tracker = tracking.TrackState()  # poses of this connection, to predict regions
         self.pending: tuple[int, bytes] | None = None
         self.received = 0  # binary messages so far; the next one's seq
         self.dropped = 0  # replaced before processing, since the last reply
@@ -288,11 +296,11 @@ async def _process(websocket: WebSocket, session: _Session, app: Any, contexts: 
         session.bucket.take()
         (seq, data), session.pending = session.pending, None
         dropped, session.dropped = session.dropped, 0
-        config = session.config
+        frame = tracking.StreamFrame(config=session.config, seq=seq, state=session.tracker)
         try:
             result = await anyio.to_thread.run_sync(
                 tracking.locate_frame, session.context, contexts.detectors, app.state.sessionmaker, settings,
-                data, config, limiter=limiter,
+                data, frame, limiter=limiter,
             )
         except ServiceError as exc:
             session.dropped += dropped  # reported with the next frame reply
@@ -307,4 +315,6 @@ async def _process(websocket: WebSocket, session: _Session, app: Any, contexts: 
             "type": "frame", "seq": seq, "width": result.width, "height": result.height,
             "targets": result.targets, "pose": result.pose, "pose_error": result.pose_error,
             "timing_ms": result.timing_ms, "dropped": dropped,
+            # whole frame or predicted regions (timing_ms.regions: how many), and why
+            "scan": result.scan, "scan_reason": result.scan_reason,
         })

@@ -2,10 +2,20 @@
 
 An environment's map and detector are loaded once and shared by every client; a new
 map (survey, import) is picked up by the next connection or ``locate`` call.
+
+A /track connection also has a memory (`TrackState`): its last two poses predict where
+the map's targets appear in the next frame, and only regions around them are searched
+(app.core.regions). The whole frame is scanned when there is no usable pose (the first
+frame, track lost, too many frames dropped since), when the camera changed, when the
+predicted regions would cover most of the frame anyway, every ``full_scan_every``
+frames (targets not in the map, a wrong prior), and again, at once, when a region scan
+gives no pose. ``POST /environments/{id}/locate`` (one image, no history) always scans
+the whole frame.
 """
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from dataclasses import dataclass, field
@@ -16,9 +26,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core.camera import Camera
-from app.core.detector import Detection
-from app.core.pose import METHODS, PoseUndetermined, TargetObservation, estimate_pose
+from app.core.camera import Camera, Pose
+from app.core.detector import Detection, Detector
+from app.core.pose import METHODS, PoseEstimate, PoseUndetermined, TargetObservation, estimate_pose
+from app.core.regions import MapTargets, Region, RegionParams, predict_regions
 from app.models import Environment, SurveyMap
 from app.schemas import CameraModel, MapDocument
 from app.services import classifiers
@@ -36,6 +47,11 @@ class TrackConfig(BaseModel):
     method: Literal["nonlinear", "posit", "mean", "single"] = "nonlinear"
     estimate_focal: bool = Field(False, description="Free the focal length per frame (zoom lens).")
     intrinsics: CameraModel | None = Field(None, description="Override the map's camera (K, dist, size).")
+    regions: bool = Field(True, description="Search only around the targets the previous poses predict "
+                                            "(false: scan every whole frame).")
+    full_scan_every: int = Field(30, ge=1, le=1_000_000,
+                                 description="With regions, scan the whole frame at least every this many "
+                                             "frames (finds targets the prediction misses).")
 
 
 assert set(TrackConfig.model_fields["method"].annotation.__args__) == set(METHODS)  # type: ignore[union-attr]
@@ -51,6 +67,11 @@ class TrackingContext:
     discs: dict[int, np.ndarray]  # target id -> (4, 3) map coordinates
     detector_key: tuple[int, str]
     camera_dict: dict[str, Any] = field(default_factory=dict)
+
+    @functools.cached_property
+    def targets(self) -> MapTargets:
+        """The map's discs stacked for region prediction (built on first use)."""
+        return MapTargets.from_discs(self.discs)
 
 
 class TrackingContexts:
@@ -89,9 +110,98 @@ class TrackingContexts:
             camera_dict=document.camera.model_dump(),
         )
         self.detectors.get(session, classifier_id, environment.marker_family)  # load once, now
+        _ = context.targets  # stacked for region prediction once, now
         with self._lock:
             self._contexts[environment_id] = context
         return context
+
+
+# --------------------------------------------------------------------------------------
+# Per-connection state
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Seen:
+    """A frame's pose, the seq of that frame, and the camera it was computed with."""
+
+    seq: int
+    pose: Pose
+    camera: Camera
+
+
+class TrackState:
+    """One /track connection's memory between frames: its last two poses (for a
+    position and a velocity), the camera of its last frame, and frames since the last
+    full scan. Frames of one connection are processed one at a time, but the lock keeps
+    the state whole whatever calls it."""
+
+    def __init__(self, params: RegionParams | None = None) -> None:
+        self.params = params or RegionParams()
+        self._lock = threading.Lock()
+        self._last: _Seen | None = None
+        self._before: _Seen | None = None
+        self._camera: Camera | None = None  # intrinsics and size of the last frame
+        self._since_full = 0
+
+    def plan(self, seq: int, camera: Camera, config: TrackConfig, targets: MapTargets
+             ) -> tuple[list[Region] | None, str]:
+        """Regions to search in frame `seq` (None: the whole frame) and why."""
+        with self._lock:
+            if not config.regions:
+                return None, "off"
+            if self._camera is None:
+                return None, "first"
+            if camera is not self._camera and camera != self._camera:
+                return None, "camera"
+            last, before = self._last, self._before
+            if last is None:
+                return None, "lost"
+            if self._since_full + 1 >= config.full_scan_every:
+                return None, "periodic"
+            steps = seq - last.seq
+            if not 0 < steps <= self.params.max_steps:
+                return None, "stale"
+            gap = last.seq - before.seq if before is not None else 0
+            if before is None or not 0 < gap <= self.params.max_steps:
+                before, gap = None, 1
+        # (prediction outside the lock: it only reads the snapshot taken above)
+        regions = predict_regions(targets, last.camera, last.pose, steps, before.pose if before else None, gap,
+                                  self.params)
+        if regions is None:
+            return None, "wide"
+        return regions, "regions"
+
+    def update(self, seq: int, camera: Camera, estimate: PoseEstimate | None, full: bool) -> None:
+        """Remember frame `seq`'s outcome."""
+        seen = None
+        if estimate is not None:
+            if abs(estimate.focal_px - camera.fx) > 1e-9 * camera.fx:
+                # A zoom lens (estimate_focal): predict with the focal length just measured.
+                K = camera.K.copy()
+                K[0, :2] *= estimate.focal_px / camera.fx  # fx and the skew
+                K[1, 1] *= estimate.focal_px / camera.fx
+                seen = _Seen(seq, estimate.pose, Camera(K, camera.dist, camera.width, camera.height))
+            else:
+                seen = _Seen(seq, estimate.pose, camera)
+        with self._lock:
+            if camera is not self._camera and camera != self._camera:
+                self._camera, self._last, self._before = camera, None, None
+            self._since_full = 0 if full else self._since_full + 1
+            if seen is None:
+                self._last = self._before = None  # lost: the next frame is scanned whole
+            elif self._last is None or seq > self._last.seq:
+                self._before, self._last = self._last, seen
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """A frame of a /track connection: its config, its seq and the connection's state
+    (`locate_frame` takes it in place of a bare config)."""
+
+    config: TrackConfig
+    seq: int
+    state: TrackState
 
 
 @dataclass(frozen=True)
@@ -102,6 +212,8 @@ class FrameResult:
     timing_ms: dict[str, float]
     width: int
     height: int
+    scan: Literal["full", "regions"] = "full"
+    scan_reason: str = "single"
 
 
 def locate_frame(
@@ -110,9 +222,16 @@ def locate_frame(
     session_factory: Any,
     settings: Settings,
     data: bytes,
-    config: TrackConfig,
+    config: TrackConfig | StreamFrame,
 ) -> FrameResult:
-    """Decode, detect, and estimate the pose of one frame (runs in a worker thread)."""
+    """Decode, detect, and estimate the pose of one frame (runs in a worker thread).
+
+    `config`: a TrackConfig for a lone image (whole-frame scan), or a `StreamFrame` for
+    a /track frame (regions predicted from the connection's previous poses)."""
+    stream = config if isinstance(config, StreamFrame) else None
+    if stream is not None:
+        config = stream.config
+    assert isinstance(config, TrackConfig)
     start = time.perf_counter()
     gray = decode(data, settings)
     decoded = time.perf_counter()
@@ -120,31 +239,50 @@ def locate_frame(
     if detector is None:
         with session_factory() as session:
             detector = detections.get(session, *context.detector_key)
-    detection: Detection = detector.detect(gray)
     camera = context.camera
     if config.intrinsics is not None:
         camera = Camera.from_dict(config.intrinsics.model_dump())
     if (gray.shape[1], gray.shape[0]) != (camera.width, camera.height):
         camera = camera.scaled_to(gray.shape[1], gray.shape[0])
-    observations = [
-        TargetObservation(t.id, t.discs, context.discs[t.id]) for t in detection.targets if t.id in context.discs
-    ]
-    pose: dict[str, Any] | None = None
-    pose_error: str | None = None
-    posed = time.perf_counter()
-    try:
-        estimate = estimate_pose(observations, camera, config.method, config.estimate_focal)
-        pose = estimate.to_dict()
-    except PoseUndetermined as exc:
-        pose_error = str(exc)
-    done = time.perf_counter()
-    timing = {"decode": (decoded - start) * 1e3, **detection.timing_ms, "pose": (done - posed) * 1e3,
-              "total": (done - start) * 1e3}
+    regions, reason = (None, "single") if stream is None else stream.state.plan(
+        stream.seq, camera, config, context.targets)
+    planned = time.perf_counter()
+    detection, estimate, pose_error, pose_ms = _detect_and_pose(detector, gray, regions, context, camera, config)
+    timing = {"decode": (decoded - start) * 1e3, "plan": (planned - decoded) * 1e3, **detection.timing_ms}
+    if estimate is None and regions is not None:
+        # Lost in the regions (fast motion, a wrong prior): the whole frame, now.
+        reason, regions = "fallback", None
+        detection, estimate, pose_error, more_ms = _detect_and_pose(detector, gray, None, context, camera, config)
+        pose_ms += more_ms
+        for key, value in detection.timing_ms.items():
+            timing[key] = timing.get(key, 0.0) + value
+    if stream is not None:
+        stream.state.update(stream.seq, camera, estimate, full=regions is None)
+    timing.update(pose=pose_ms, total=(time.perf_counter() - start) * 1e3)
     return FrameResult(
         targets=[t.to_dict() for t in detection.targets],
-        pose=pose,
+        pose=estimate.to_dict() if estimate is not None else None,
         pose_error=pose_error,
         timing_ms={k: round(v, 3) for k, v in timing.items()},
         width=gray.shape[1],
         height=gray.shape[0],
+        scan="full" if regions is None else "regions",
+        scan_reason=reason,
     )
+
+
+def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region] | None, context: TrackingContext,
+                     camera: Camera, config: TrackConfig
+                     ) -> tuple[Detection, PoseEstimate | None, str | None, float]:
+    """(detection, pose estimate or None, why not, milliseconds spent on the pose)."""
+    detection = detector.detect(gray, regions)
+    observations = [
+        TargetObservation(t.id, t.discs, context.discs[t.id]) for t in detection.targets if t.id in context.discs
+    ]
+    posed = time.perf_counter()
+    try:
+        estimate: PoseEstimate | None = estimate_pose(observations, camera, config.method, config.estimate_focal)
+        error = None
+    except PoseUndetermined as exc:
+        estimate, error = None, str(exc)
+    return detection, estimate, error, (time.perf_counter() - posed) * 1e3
