@@ -10,9 +10,11 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
+import cv2
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from threadpoolctl import threadpool_limits
 
 from app import __version__, logs
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
@@ -35,6 +37,7 @@ log = logging.getLogger("app")
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     logs.configure(settings.log_format, settings.log_level)
+    _limit_compute_threads(settings.compute_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
@@ -56,6 +59,13 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     finally:
         runner.shutdown()
         engine.dispose()
+
+
+def _limit_compute_threads(threads: int) -> None:
+    """OpenCV's and BLAS's own thread pools (process-wide): a frame is small work, and
+    its pools' idle threads spin on the cores other frames and clients need."""
+    cv2.setNumThreads(threads)
+    threadpool_limits(limits=threads)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

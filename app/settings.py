@@ -39,6 +39,10 @@ class Settings(BaseSettings):
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
     max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
+    compute_threads: int = Field(1, ge=1, le=64, description=(
+        "Threads one frame's detection and pose may use inside OpenCV and BLAS. Frames of "
+        "different clients already run in parallel (track_threads); 1 keeps idle BLAS "
+        "threads from spinning on the cores the other frames need."))
     max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
 
     @computed_field  # type: ignore[prop-decorator]

@@ -26,3 +26,16 @@ def test_docs_and_openapi(client: TestClient) -> None:
     for path in ["/environments", "/environments/{environment_id}/map", "/markers/{marker_id}.png",
                  "/markers/sheet.pdf", "/readyz", "/metrics"]:
         assert path in paths
+
+
+def test_server_limits_the_threads_of_one_frame(settings) -> None:  # type: ignore[no-untyped-def]
+    """Frames of different clients run in parallel: inside one frame OpenCV and BLAS
+    get `compute_threads`, so their idle pool threads do not spin on the other cores."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    from app.main import create_app
+
+    with TestClient(create_app(settings.model_copy(update={"compute_threads": 1}))):
+        assert cv2.getNumThreads() == 1
+        assert all(pool["num_threads"] == 1 for pool in threadpool_info())
