@@ -262,6 +262,10 @@ NEAR_PLANAR = 0.05
 #: neglected second-order terms are ~1e-7 px).
 CONVERGED_PX = 0.01
 GAUSS_NEWTON_ITERATIONS = 8
+#: A further start is refined only if its cost is below this multiple of the best
+#: optimum's cost (floored at FLOOR_PX per point): see `_fit_all`.
+HOPELESS_START = 1e3
+FLOOR_PX = 0.1
 
 
 class _Fit(NamedTuple):
@@ -329,15 +333,26 @@ def _fit_all(K: np.ndarray, dist: np.ndarray, world: np.ndarray, image: np.ndarr
             ok = False
         if ok:
             starts.append((rvec, tvec))
-    found = []
-    for rvec, tvec in starts:
+    if len(starts) > 1:
+        # Best start first; a start whose reprojection cost is orders of magnitude above
+        # the best optimum found so far (the wrong tilt of points that span much of the
+        # image) is not refined: its descent would cost a damped LM run, and it ends
+        # in a poorer optimum or the same one. Ambiguous tilts start close in cost.
+        costs = [float(np.square(cv2.projectPoints(world, r, t, K, dist)[0].reshape(-1, 2) - image).sum())
+                 for r, t in starts]
+        starts = [starts[k] for k in np.argsort(costs)]
+        costs.sort()
+    found: list[_Fit] = []
+    for k, (rvec, tvec) in enumerate(starts):
+        if found and costs[k] > HOPELESS_START * max(found[0].cost, len(world) * FLOOR_PX**2):
+            break
         rvec, tvec, linearised = _refine(K, dist, world, image, rvec, tvec)
         # A pose with points behind the camera is no pose, however well it "fits".
         if float((world @ cv2.Rodrigues(rvec)[0][2]).min()) + tvec[2, 0] <= 0:
             continue
         residual = linearised[0].ravel()
         found.append(_Fit(float(np.dot(residual, residual)), rvec, tvec, linearised))
-    found.sort(key=lambda fit: fit.cost)
+        found.sort(key=lambda fit: fit.cost)
     return found
 
 
