@@ -80,3 +80,18 @@ def test_grey_colour_alpha_and_16_bit_images_decode_to_8_bit_grey() -> None:
         decoded = decode_gray(data, max_pixels=10**6)
         assert decoded.dtype == np.uint8 and decoded.shape == (32, 64), name
         assert np.abs(decoded.astype(int) - grey).max() <= 3, name
+
+
+def test_exif_orientation_is_ignored() -> None:
+    """Pixels stay where the sensor put them (the camera's intrinsics refer to them),
+    whatever a phone's EXIF orientation tag says."""
+    image = np.zeros((32, 64, 3), np.uint8)
+    image[:, :8] = 255  # a bright left edge
+    jpeg = _encode(image, ".jpg")
+    # APP1 Exif: little-endian TIFF, one IFD entry, Orientation (0x0112) = 6 (rotate 90 CW)
+    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, 6, 0) + b"\x00" * 4
+    app1 = b"Exif\x00\x00" + tiff
+    tagged = jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:]
+    decoded = decode_gray(tagged, max_pixels=10**6)
+    assert decoded.shape == (32, 64)
+    assert decoded[:, :6].mean() > 200 and decoded[:, 12:].mean() < 50

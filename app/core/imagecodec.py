@@ -114,7 +114,14 @@ def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarr
             "too_large",
             f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
         )
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if header.format == "jpeg":
+        # Luma straight from the decoder: a colour JPEG's chroma is never upsampled or
+        # converted (0.6 instead of 0.9 ms at 640x480). EXIF orientation is ignored, as
+        # for every format: pixels must stay where the camera's intrinsics put them.
+        flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
+    else:
+        flags = cv2.IMREAD_UNCHANGED  # 16-bit and 4-channel PNGs are converted below
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if image is None or image.size == 0:
         raise ImageError("corrupt", f"the {header.format.upper()} data could not be decoded")
     if image.shape[0] != header.height or image.shape[1] != header.width:
