@@ -16,7 +16,7 @@ from app.core.alignment import (
 )
 from app.core.camera import Camera, Pose
 from app.core.scenes import Scene, camera_walk, frame_truth, render_walk, room_scene
-from app.core.survey import SurveyError, SurveyResult, focal_from_cards, survey
+from app.core.survey import SurveyError, SurveyResult, focal_from_cards, lens_from_cards, survey
 from app.core.targets import DetectedTarget
 
 ROOM = (4.0, 3.0, 2.5)
@@ -95,19 +95,22 @@ def test_misidentified_views_are_removed() -> None:
     # sees only the relabelled card, frames 0-2 see it with cards not yet surveyed.
     ids_seen = sorted({t.id for f in frames for t in f})
     wrong_id = ids_seen[0]
-    injected = 0
-    for f in frames:
+    injected: list[int] = []  # frames holding a misread view
+    for k, f in enumerate(frames):
         ids = {t.id for t in f}
-        if wrong_id in ids or not f or injected >= 4:
+        if wrong_id in ids or not f or len(injected) >= 4:
             continue
         victim = f[0]
         f[0] = DetectedTarget(wrong_id, victim.discs, 1.0)
-        injected += 1
-    assert injected == 4
+        injected.append(k)
+    assert len(injected) == 4
     result = survey(frames, 640, 480, SIZE)
     reference = survey(clean, 640, 480, SIZE)
     assert len(result.targets) == len(reference.targets) == len(ids_seen)
-    assert result.n_rejected_views >= injected
+    # Every misread view is either rejected or left out with its whole frame (frame 3
+    # sees nothing else: it cannot be registered).
+    left_out = sum(result.trajectory[k] is None for k in injected)
+    assert result.n_rejected_views + left_out >= len(injected)
     # The map is as good as without the misread codes (this walk's geometry allows
     # ~5 mm at 0.1 px noise; see the clean survey).
     assert _disc_rms(result, scene) < 1.1 * _disc_rms(reference, scene) + 0.0002
@@ -135,6 +138,64 @@ def test_wrongly_identified_card_in_later_frames_is_removed(seed: int) -> None:
     assert result.n_rejected_views + left_out >= len(injected)
     assert _disc_rms(result, scene) < 0.006
     assert result.rms_px < 0.3
+
+
+BENCH_CAMERA = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
+                      np.array([-0.12, 0.0, 0.0, 0.0, 0.0]), 640, 480)
+
+
+@functools.cache
+def _oblique_room(n_frames: int, min_facing: float, sigma: float = 0.03
+                  ) -> tuple[Scene, tuple[tuple[DetectedTarget, ...], ...]]:
+    """bench/bench_survey.py's room (8 x 6 x 3 m, 30 cards, f 820 px, k1 -0.12) with
+    ground-truth detections of every card facing the camera by more than ``min_facing``
+    (0.3: up to 72 degrees off its normal), plus Gaussian noise. As visible, the truth
+    also counts some projections of cards outside the field that the distortion
+    polynomial folds back into the image: the survey must not be misled by them."""
+    rng = np.random.default_rng(0)
+    scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=SIZE)
+    walk = camera_walk(rng, scene.room_size, 300, kind="calibration")[:n_frames]
+    noise = np.random.default_rng(5)
+    frames = []
+    for pose in walk:
+        truth = frame_truth(BENCH_CAMERA, pose, scene)
+        frames.append(tuple(DetectedTarget(t.id, t.discs_px + noise.normal(0, sigma, (4, 2)), 1.0)
+                            for t in truth.targets if t.visible and t.facing_cos > min_facing))
+    return scene, tuple(frames)
+
+
+def test_oblique_cards_survey_to_the_noise() -> None:
+    """Strongly foreshortened cards are valid geometry: the map must reach the noise.
+
+    Before: the growth placed narrow-baseline cards 1 m off, or in the wrong one of their
+    two tilts, or from a folded projection of a card outside the field (the largest
+    "view"), and the bundle adjustment stayed in that wrong minimum: 13.6 mm and 0.088 px
+    here (2x the noise), and from 0.5 to 1100 mm at 300 frames, depending on details.
+    The bundle adjustment started from the truth gives 2.3 mm on these frames (some
+    cards are seen over 1.5 degrees only)."""
+    scene, frames = _oblique_room(100, 0.3)
+    result = survey([list(f) for f in frames], 640, 480, SIZE)
+    assert result.rms_px < 0.05  # the noise: 0.03 px per coordinate, 0.042 px in 2D
+    assert _disc_rms(result, scene, scale=True) < 0.004
+    assert abs(result.camera.fx / BENCH_CAMERA.fx - 1) < 0.002
+    # 26 of the 30 ids can be surveyed: 4 are seen in one frame, or only in frames that
+    # see nothing else of the map.
+    assert len(result.targets) >= 25
+    assert any("mirrored or folded" in w for w in result.warnings)
+
+
+def test_lens_from_cards_is_unbiased() -> None:
+    """The closed form is biased by detector noise (+4 % here at 0.03 px); the maximum
+    likelihood fit over every card (each its own pose) is not, and finds k1 too."""
+    _, frames = _oblique_room(100, 0.3)
+    cards = [t.discs for f in frames for t in f]
+    closed = focal_from_cards(cards, 640, 480)
+    assert closed is not None and closed / 820.0 - 1 > 0.03
+    lens = lens_from_cards(cards, 640, 480, closed)
+    assert lens is not None
+    f, k1 = lens
+    assert abs(f / 820.0 - 1) < 0.01
+    assert abs(k1 - -0.12) < 0.02
 
 
 def test_fixed_intrinsics_are_held() -> None:
