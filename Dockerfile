@@ -6,7 +6,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     FIDOTRACK_HOST=0.0.0.0 \
     FIDOTRACK_PORT=8000 \
-    FIDOTRACK_DATA_DIR=/data
+    FIDOTRACK_DATA_DIR=/data \
+    NUMBA_CACHE_DIR=/data/numba-cache
 
 RUN useradd --create-home --uid 10001 fidotrack \
     && mkdir -p /data && chown fidotrack:fidotrack /data

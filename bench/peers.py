@@ -209,6 +209,9 @@ class FidoDetector(PeerDetector):
             detector = _import("app.core.detector")
             if detector is not None and hasattr(detector, "Detector"):
                 self._detect = detector.Detector(classifier, self.family).detect
+            kernels = _import("app.core.kernels")
+            if kernels is not None:
+                kernels.warm_up()  # compile (or load) now: the first timed frame would pay it
             else:
                 self._detect = lambda gray: targets.assemble_targets(
                     gray, candidates.find_candidates(gray, classifier), family=self.family

@@ -51,8 +51,10 @@ Coordinates: full resolution, centre of the top-left pixel at (0, 0). ``cv2.pyrD
 centres level-L pixel i on full-resolution pixel ``i * 2**L``, so a level position maps
 to full resolution by a plain ``* 2**L``.
 
-Pure numpy/OpenCV/SciPy; no I/O apart from `load_default_classifier` reading the file
-that ships inside the package.
+numpy/OpenCV/SciPy, and a few numba kernels (`app.core.kernels`: the rest of stage 1a
+after the morphology, the window copies, the screen's correction, the suppression
+sweep) where fused loops beat chains of whole-array calls, with identical results. No
+I/O apart from `load_default_classifier` reading the file that ships inside the package.
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+
+from app.core import kernels
 
 WINDOW: int = 12
 LEVELS: int = 4
@@ -333,6 +337,22 @@ def pad_level(level: np.ndarray, workspace: _Workspace | None = None) -> np.ndar
     return cv2.copyMakeBorder(level, _HALF, _HALF, _HALF, _HALF, cv2.BORDER_REPLICATE, dst=dst)
 
 
+def _tophat_integral(padded: np.ndarray, ws: _Workspace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The morphology of stage 1a on a padded level: (integral image (h + 1, w + 1) int32
+    of the black top-hat, 12x12 max, 12x12 min), in `ws`'s buffers."""
+    h, w = padded.shape
+    key = (h, w)
+    # 12x12 max/min over the window (anchor 6: rows y-6..y+5 -> centre y-0.5) and the
+    # closing (erosion anchored at 5 so the composite element is centred).
+    dil = cv2.dilate(padded, _SE, dst=ws.get("dil", key, np.uint8), anchor=(_HALF, _HALF))
+    ero = cv2.erode(padded, _SE, dst=ws.get("ero", key, np.uint8), anchor=(_HALF, _HALF))
+    tophat = cv2.erode(dil, _SE, dst=ws.get("top", key, np.uint8), anchor=(_HALF - 1, _HALF - 1))
+    cv2.subtract(tophat, padded, dst=tophat)
+    # window sums from the integral image (exact int32): `kernels.blob_ratio`
+    integral = cv2.integral(tophat, sum=ws.get("int", (h + 1, w + 1), np.int32), sdepth=cv2.CV_32S)
+    return integral, dil, ero
+
+
 def blob_scores(padded: np.ndarray, workspace: _Workspace | None = None) -> np.ndarray:
     """Stage-1a score of every 12x12 window lying wholly inside `padded` (a level with
     a replicated border, see `pad_level`).
@@ -346,34 +366,25 @@ def blob_scores(padded: np.ndarray, workspace: _Workspace | None = None) -> np.n
     """
     ws = workspace if workspace is not None else _Workspace()
     h, w = padded.shape
-    key = (h, w)
-    # 12x12 max/min over the window (anchor 6: rows y-6..y+5 -> centre y-0.5) and the
-    # closing (erosion anchored at 5 so the composite element is centred).
-    dil = cv2.dilate(padded, _SE, dst=ws.get("dil", key, np.uint8), anchor=(_HALF, _HALF))
-    ero = cv2.erode(padded, _SE, dst=ws.get("ero", key, np.uint8), anchor=(_HALF, _HALF))
-    tophat = cv2.erode(dil, _SE, dst=ws.get("top", key, np.uint8), anchor=(_HALF - 1, _HALF - 1))
-    cv2.subtract(tophat, padded, dst=tophat)
-    # Window sums of the top-hat from its integral image (exact int32): the 12x12 window
-    # with top-left (y, x) and its central 4x4 (rows and columns 4..7), rows first (a
-    # subtraction of shifted rows of the integral), then columns. Stage 1a is memory
-    # bound, so three image-sized buffers serve the eight steps: a row step may write
-    # over the rows it reads (each output row lies before the rows it reads, in memory
-    # order), an element-wise step over its own input; a column step may not (OpenCV
-    # redoes the last SIMD block of a row).
-    integral = cv2.integral(tophat, sum=ws.get("int", (h + 1, w + 1), np.int32), sdepth=cv2.CV_32S)
-    oh, ow = h - WINDOW + 1, w - WINDOW + 1
-    strip = ws.get("strip", (oh, w + 1), np.int32)
-    cv2.subtract(integral[WINDOW:], integral[:oh], dst=strip)
-    sum12 = cv2.subtract(strip[:, WINDOW:], strip[:, :ow], dst=ws.get("sum12", (oh, ow), np.int32))
-    cv2.subtract(integral[8 : h - 3], integral[4 : h - 7], dst=integral[:oh])
-    sum4 = cv2.subtract(integral[:oh, 8 : w - 3], integral[:oh, 4 : w - 7], dst=strip[:, :ow])
-    # centre mean minus window mean, as float32: bit-identical to the difference of two
-    # normalised float32 box filters (tests/test_candidates.py checks it)
-    num = cv2.addWeighted(sum4, 1.0 / 16.0, sum12, -1.0 / _DIM, 0.0, dst=sum12.view(np.float32), dtype=cv2.CV_32F)
-    contrast = cv2.subtract(dil, ero, dst=ero)
-    den = cv2.add(contrast[_HALF : h - _HALF + 1, _HALF : w - _HALF + 1], _RANGE_EPS,
-                  dst=sum4.view(np.float32), dtype=cv2.CV_32F)
-    return cv2.divide(num, den, dst=num)
+    integral, dil, ero = _tophat_integral(padded, ws)
+    # (centre mean - window mean) / (range + eps) from the window sums, in one compiled
+    # pass with the arithmetic of the OpenCV calls it replaced
+    score = ws.get("blob", (h - WINDOW + 1, w - WINDOW + 1), np.float32)
+    kernels.blob_ratio(integral, dil, ero, np.float32(_RANGE_EPS), score)
+    return score
+
+
+def _maxima_buffers(shape: tuple[int, int], ws: _Workspace) -> tuple[np.ndarray, ...]:
+    """Scratch and output buffers of `kernels.local_maxima` for scores of `shape`."""
+    h, w = shape
+    return (ws.get("max3", (3, w), np.float32), ws.get("maxima_row", (-(-w // 8) * 8,), np.uint8),
+            ws.get("maxima_y", (h * w,), np.intp), ws.get("maxima_x", (h * w,), np.intp))
+
+
+def _threshold32(threshold: float) -> np.float32:
+    """A local maximum's threshold, + tiny (strictly above), rounded to float32 as
+    cv2.max rounds a scalar for a float32 image."""
+    return np.float32(float(threshold) + 1e-6)
 
 
 def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | None = None
@@ -381,13 +392,21 @@ def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | No
     """(ys, xs) int arrays of 3x3 local maxima of `score` strictly above `threshold`,
     in row-major order."""
     ws = workspace if workspace is not None else _Workspace()
-    # (into the buffer `blob_scores` used for the denominator: one image-sized buffer less)
-    h, w = score.shape
-    dil = cv2.dilate(score, None, dst=ws.get("strip", (h, w + WINDOW), np.int32)[:, :w].view(np.float32))
-    # score >= max(neighbourhood max, threshold + tiny): local maximum and above threshold.
-    cv2.max(dil, float(threshold) + 1e-6, dst=dil)
-    mask = cv2.compare(score, dil, cv2.CMP_GE, dst=ws.get("lmmask", score.shape, np.uint8))
-    return _nonzero(mask)
+    max3, row_mask, ys, xs = _maxima_buffers(score.shape, ws)
+    n = kernels.local_maxima(np.ascontiguousarray(score, np.float32), _threshold32(threshold), max3, row_mask, ys, xs)
+    return ys[:n].copy(), xs[:n].copy()
+
+
+def _blob_maxima(padded: np.ndarray, threshold: float, ws: _Workspace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``blob_scores(padded)`` and ``local_maxima`` of it in one pass (`kernels.blob_maxima`):
+    (score, ys, xs); the score is `ws`'s buffer."""
+    h, w = padded.shape
+    integral, dil, ero = _tophat_integral(padded, ws)
+    score = ws.get("blob", (h - WINDOW + 1, w - WINDOW + 1), np.float32)
+    max3, row_mask, ys, xs = _maxima_buffers(score.shape, ws)
+    n = kernels.blob_maxima(integral, dil, ero, np.float32(_RANGE_EPS), _threshold32(threshold), score, max3, row_mask,
+                            ys, xs)
+    return score, ys[:n].copy(), xs[:n].copy()
 
 
 def stage1_scores(level: np.ndarray) -> np.ndarray:
@@ -405,22 +424,6 @@ def stage1_mask(level: np.ndarray, threshold: float) -> np.ndarray:
     ys, xs = local_maxima(score, threshold)
     mask[ys, xs] = True
     return mask
-
-
-def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """np.nonzero of a sparse uint8 mask, fast: find the non-zero 8-byte words first,
-    then the bytes within them (a frame has ~1000 maxima among 300k pixels)."""
-    w = mask.shape[1]
-    flat = np.ascontiguousarray(mask).reshape(-1)
-    n8 = flat.size - flat.size % 8
-    # (``nonzero`` of a bool array: np.flatnonzero of the uint64 words themselves is ~7x
-    # slower, numpy counts and converts them word by word)
-    words = np.nonzero(flat[:n8].view(np.uint64) != 0)[0]
-    idx = (words[:, None] * 8 + np.arange(8)).reshape(-1)
-    idx = idx[flat[idx] != 0]
-    if n8 < flat.size:
-        idx = np.concatenate([idx, n8 + np.flatnonzero(flat[n8:])])
-    return np.divmod(idx, w)
 
 
 # --------------------------------------------------------------------------------------
@@ -461,27 +464,19 @@ def screen_scores(normalised: np.ndarray, classifier: DiscClassifier) -> np.ndar
     return hidden @ classifier.screen_w2 + np.float32(classifier.screen_b2)
 
 
-def _screen_raw(raw: np.ndarray, classifier: DiscClassifier, workspace: _Workspace | None = None) -> np.ndarray:
-    """`screen_scores` of raw uint8 windows without normalising them first:
-    ``x W1 = (w W1 - mean(w) 1 W1) / |w - mean(w)|``, one product and two cheap
-    corrections instead of a pass over every pixel of every window."""
-    flat = raw.reshape(-1, _DIM)
-    if workspace is None:
-        w = flat.astype(np.float32)
-    else:
-        w = workspace.rows("screen_in", flat.shape[0], (_DIM,), np.float32)
-        np.copyto(w, flat, casting="unsafe")
-    # One product gives x W1 and, in its last column (W1 extended by a column of ones),
-    # the window sums (exact: integers below 2**24).
-    product = w @ classifier._w1_ext  # type: ignore[attr-defined]
+def _screen_gathered(flat: np.ndarray, sums: np.ndarray, sums_sq: np.ndarray, classifier: DiscClassifier
+                     ) -> np.ndarray:
+    """`screen_scores` of raw windows (N, 144) float32 (with their pixel sums and sums of
+    squares, `kernels.gather_windows`) without normalising them first:
+    ``x W1 = (w W1 - mean(w) 1 W1) / |w - mean(w)|``, one product and a cheap
+    correction (`kernels.screen_hidden`) instead of a pass over every pixel of every
+    window."""
+    # (W1 extended by a column of ones, whose product column is not used any more: the
+    # product of the same shape keeps BLAS's float32 sums, and so the scores, as they were)
+    product = flat @ classifier._w1_ext  # type: ignore[attr-defined]
     hidden = product[:, :-1]
-    mean = product[:, -1] / np.float32(_DIM)
-    sq = np.einsum("ij,ij->i", w, w) - np.float32(_DIM) * mean * mean
-    inv = 1.0 / np.maximum(np.sqrt(np.maximum(sq, 0.0)), np.float32(_NORM_EPS))
-    hidden -= mean[:, None] * classifier._w1_sum[None, :]  # type: ignore[attr-defined]
-    hidden *= inv[:, None]
-    hidden += classifier.screen_b1
-    np.maximum(hidden, 0.0, out=hidden)
+    kernels.screen_hidden(hidden, sums, sums_sq, classifier._w1_sum,  # type: ignore[attr-defined]
+                          classifier.screen_b1, np.float32(_NORM_EPS))
     return hidden @ classifier.screen_w2 + np.float32(classifier.screen_b2)
 
 
@@ -631,12 +626,12 @@ def _scan(gray: np.ndarray, blob_thresholds: float | Sequence[float], workspace:
           ) -> tuple[list[np.ndarray], list[tuple[int, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray]]]:
     """`scan_levels` and the (unpadded) pyramid levels."""
     thresholds = np.broadcast_to(np.asarray(blob_thresholds, np.float64), (LEVELS,))
+    ws = workspace if workspace is not None else _Workspace()
     out = []
     levels = pyramid(gray, workspace)
     for level_index, level in enumerate(levels):
         padded = pad_level(level, workspace)
-        score = blob_scores(padded, workspace)
-        ys, xs = local_maxima(score, float(thresholds[level_index]), workspace)
+        score, ys, xs = _blob_maxima(padded, float(thresholds[level_index]), ws)
         out.append((level_index, padded, _HALF, ys, xs, score[ys, xs]))
     return levels, out
 
@@ -656,17 +651,28 @@ def stage1_windows(image: np.ndarray, classifier: DiscClassifier, apply_screen: 
     padded_levels = tuple(p for _, p, _, _, _, _ in scanned)
     total = pyramid_window_count(gray.shape)
     half = np.float32((WINDOW - 1) / 2)
-    parts = [(extract_windows(padded, ys, xs), np.full(ys.shape, lv, np.int8),
-              xs.astype(np.float32) + (half - pad), ys.astype(np.float32) + (half - pad), blob)
-             for lv, padded, pad, ys, xs, blob in scanned if ys.size]
-    if not parts:
+    found = [(lv, padded, pad, ys, xs, blob) for lv, padded, pad, ys, xs, blob in scanned if ys.size]
+    if not found:
         return Stage1Windows(
             windows=np.zeros((0, WINDOW, WINDOW), np.uint8), level=np.zeros(0, np.int8),
             centre=np.zeros((0, 2), np.float32), blob=np.zeros(0, np.float32), screen=np.zeros(0, np.float32),
             total_windows=total, padded_levels=padded_levels, levels=tuple(levels),
         )
-    raw, level, xs, ys, blob = (np.concatenate(c) for c in zip(*parts))
-    screen = _screen_raw(raw, classifier, ws)
+    # the windows of every level copied once, as uint8 and as the screen's float32 rows
+    n = sum(ys.size for _, _, _, ys, _, _ in found)
+    raw = np.empty((n, WINDOW, WINDOW), np.uint8)
+    flat = ws.rows("screen_in", n, (_DIM,), np.float32)
+    sums, sums_sq = ws.rows("screen_sums", n, (), np.int64), ws.rows("screen_sums_sq", n, (), np.int64)
+    start = 0
+    for _, padded, _, ys, xs, _ in found:
+        stop = start + ys.size
+        kernels.gather_windows(padded, ys, xs, raw[start:stop], flat[start:stop], sums[start:stop],
+                               sums_sq[start:stop])
+        start = stop
+    level, xs, ys, blob = (np.concatenate(c) for c in zip(*[
+        (np.full(ys.shape, lv, np.int8), xs.astype(np.float32) + (half - pad), ys.astype(np.float32) + (half - pad),
+         blob) for lv, _, pad, ys, xs, blob in found]))
+    screen = _screen_gathered(flat, sums, sums_sq, classifier)
     if apply_screen:
         keep = np.flatnonzero(screen > np.float32(classifier.screen_threshold))
         raw, level, xs, ys, blob, screen = raw[keep], level[keep], xs[keep], ys[keep], blob[keep], screen[keep]
@@ -693,49 +699,18 @@ def _clash_pairs(rows: np.ndarray, claims: np.ndarray | None = None) -> tuple[np
     centre inside j's too. A sweep along x finds the few close pairs (every row looks
     within its own radius); comparing all pairs of a few hundred windows would cost
     more than stage 2, and a k-d tree's fixed search radius is set by the largest disc."""
-    n = rows.shape[0]
-    empty = np.zeros(0, np.intp)
-    if n < 2:
+    if rows.shape[0] < 2:
+        empty = np.zeros(0, np.intp)
         return empty, empty
-    x = rows[:, 0]
-    order = np.argsort(x, kind="stable")
-    xs = x[order]
-    r = rows[order, 2]
-    lo = np.searchsorted(xs, xs - r, side="left")
-    hi = np.searchsorted(xs, xs + r, side="right")
-    cnt = hi - lo
-    total = int(cnt.sum())
-    if total == 0:
-        return empty, empty
-    # (s, t): sorted position s looks at t within its radius along x; s suppresses
-    a = order[np.repeat(np.arange(n), cnt)]
-    b = order[np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)]
-    ahead = a < b  # the suppressor comes first in priority (also drops a == b)
-    a, b = a[ahead], b[ahead]
-    d = rows[a, :2] - rows[b, :2]
-    reach = rows[a, 2] if claims is None else np.where(claims[a], rows[a, 2], np.minimum(rows[a, 2], rows[b, 2]))
-    close = np.einsum("ij,ij->i", d, d) < reach * reach
-    return a[close].astype(np.intp), b[close].astype(np.intp)
+    claim = np.ones(rows.shape[0], bool) if claims is None else np.asarray(claims, bool)
+    return kernels.clash_pairs(np.ascontiguousarray(rows, np.float32), claim)  # the sweep, compiled
 
 
 def _greedy(n: int, first: np.ndarray, second: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
     """Greedy suppression of rows 0..n-1 (priority order) given clash pairs
-    ``first[k] < second[k]``: bool mask of the kept rows among the `active` ones."""
-    keep = np.ones(n, bool) if active is None else active.copy()
-    if first.size == 0:
-        return keep
-    if active is not None:
-        both = active[first] & active[second]
-        first, second = first[both], second[both]
-    # keep[j] = no kept i < j clashes with j. The rule only looks back, so iterating it
-    # on all j at once settles in as many rounds as the longest suppression chain.
-    for _ in range(n):
-        hits = np.bincount(second, weights=keep[first], minlength=n)
-        new = (hits == 0) if active is None else (hits == 0) & active
-        if np.array_equal(new, keep):
-            break
-        keep = new
-    return keep
+    ``first[k] < second[k]``: bool mask of the kept rows among the `active` ones
+    (`kernels.greedy`: in priority order, each kept row strikes out those it clashes with)."""
+    return kernels.greedy(first, second, np.ones(n, bool) if active is None else active)
 
 
 def suppress(candidates: np.ndarray, priority: np.ndarray | None = None) -> np.ndarray:
