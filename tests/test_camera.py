@@ -111,6 +111,67 @@ def test_ideal_canvas_covers_barrel_field(cam: Camera) -> None:
     assert ic.map_y.min() >= 0 and ic.map_y.max() <= ic.height - 1
 
 
+@pytest.mark.parametrize("k1", [-0.05, -0.12, -0.4])
+def test_fold_radius_matches_the_analytic_fold(k1: float) -> None:
+    # r (1 + k1 r^2) stops increasing where 1 + 3 k1 r^2 = 0.
+    c = Camera.pinhole(820.0, 640, 480, dist=[k1, 0, 0, 0, 0])
+    assert c.fold_radius == pytest.approx(1.0 / np.sqrt(-3.0 * k1), rel=1e-12)
+
+
+@pytest.mark.parametrize("dist", [[-0.3, 0.02, 0, 0, 0.001], [-0.3, 0.1, 0, 0, -0.02], [0, 0, 0, 0, -0.01],
+                                  [-0.25, 0.01, 0.001, -0.001, 0.0]])
+def test_fold_radius_is_where_the_radial_slope_first_vanishes(dist: list[float]) -> None:
+    c = Camera.pinhole(820.0, 640, 480, dist=dist)
+    k1, k2, _, _, k3 = dist
+    r = np.linspace(1e-3, 5.0, 500_001)
+    u = r * r
+    bad = np.flatnonzero(1 + 3 * k1 * u + 5 * k2 * u**2 + 7 * k3 * u**3 <= 0)
+    assert bad.size  # each of these lenses folds within r = 5
+    assert c.fold_radius == pytest.approx(r[bad[0]], abs=2e-5)
+    assert c.field_radius(100.0) == pytest.approx(0.95 * c.fold_radius)
+
+
+def test_fold_radius_is_inf_when_the_polynomial_never_folds() -> None:
+    assert Camera.pinhole(820.0, 640, 480).fold_radius == np.inf
+    assert Camera.pinhole(820.0, 640, 480, dist=[0.1, 0, 0, 0, 0]).fold_radius == np.inf
+    assert Camera.pinhole(820.0, 640, 480, dist=[-0.2, 0.05, 0, 0, 0]).fold_radius == np.inf  # 9 k1^2 < 20 k2
+    assert Camera.pinhole(820.0, 640, 480, dist=DIST).fold_radius == np.inf
+
+
+def test_field_radius_is_the_farthest_image_corner_short_of_the_fold(cam: Camera) -> None:
+    # The farthest corner (pixel-area edge) of an off-centre principal point, undistorted.
+    w, h = cam.width, cam.height
+    edges = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+    ideal = cam.undistort_pixels(edges)
+    corner = np.hypot((ideal[:, 0] - cam.cx) / cam.fx, (ideal[:, 1] - cam.cy) / cam.fy).max()
+    assert cam.field_radius() == pytest.approx(corner, rel=1e-9)
+    assert cam.field_radius(1.25) == pytest.approx(1.25 * corner, rel=1e-9)
+    # A pixel in every corner sees a ray inside the field; 1% further out is outside.
+    rays = np.c_[(ideal - [cam.cx, cam.cy]) / [cam.fx, cam.fy], np.ones(4)]
+    assert cam.in_field(rays * [0.999, 0.999, 1]).all()
+    assert not cam.in_field(rays * [1.01, 1.01, 1]).all()
+    # Never past 0.95 of the fold, however large the margin.
+    strong = Camera.pinhole(820.0, 640, 480, dist=[-0.4, 0, 0, 0, 0])
+    assert strong.field_radius(10.0) == pytest.approx(0.95 * strong.fold_radius)
+    # A lens whose polynomial turns back before the image's corners: the fold bounds it.
+    wild = Camera.pinhole(300.0, 640, 480, dist=[-0.4, 0.1, 0, 0, -0.01])
+    assert wild.field_radius() == pytest.approx(0.95 * wild.fold_radius)
+
+
+def test_point_folded_into_the_image_is_outside_the_field() -> None:
+    c = Camera.pinhole(820.0, 640, 480, dist=[-0.12, 0, 0, 0, 0])
+    off = np.tan(np.radians(70.0))  # 70 degrees off axis, beyond the fold (59 degrees)
+    X = np.array([[off, 0.0, 1.0], [0.3, 0.2, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    assert off > c.fold_radius
+    u, v = c.project(X[0])[0]
+    assert 0 <= u <= 639 and 0 <= v <= 479  # the polynomial folds it into the image
+    assert c.in_field(X).tolist() == [False, True, False, False]  # folded, in view, behind, z = 0
+    assert c.in_field(X[1]).tolist() == [True]
+    # Cached by value: an equal camera built anew gives the same field.
+    again = Camera.from_dict(c.to_dict())
+    assert again is not c and again.field_radius(1.1) == c.field_radius(1.1)
+
+
 def test_dict_round_trip_eq_hash(cam: Camera) -> None:
     d = cam.to_dict()
     assert set(d) == {"width", "height", "K", "dist"}

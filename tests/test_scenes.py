@@ -97,6 +97,36 @@ def test_card_seen_from_behind_is_invisible_in_image_and_truth() -> None:
     assert truth is not None and not truth.disc_visible.any()
 
 
+def _card_off_axis(degrees: float, distance: float = 1.5, size: float = 0.2) -> scenes.PlacedTarget:
+    """A card `degrees` to the right of the optical axis (identity pose), facing the camera."""
+    a = np.radians(degrees)
+    x_axis, y_axis = np.array([np.cos(a), 0.0, -np.sin(a)]), np.array([0.0, 1.0, 0.0])
+    centre = distance * np.array([np.sin(a), 0.0, np.cos(a)])
+    return scenes.PlacedTarget(id=5, family="fido3x3", size_m=size, origin=centre - size / 2 * (x_axis + y_axis),
+                               x_axis=x_axis, y_axis=y_axis)
+
+
+def test_card_folded_into_the_image_by_the_distortion_is_not_visible() -> None:
+    """71 degrees off axis, beyond the lens's fold (59 degrees for k1 = -0.12), the
+    distortion polynomial turns back and projects the card into the image; the lens
+    does not see it there (nor does the renderer draw it), so neither may the truth."""
+    camera = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
+                    np.array([-0.12, 0.0, 0, 0, 0]), 640, 480)
+    # (r - 0.12 r^3 vanishes at r = tan 71 degrees: the card lands mid-image.)
+    folded, near_axis = _card_off_axis(71.0, distance=4.0), _card_off_axis(15.0)
+    cam = Pose.identity().transform(folded.discs)
+    uv = camera.project(cam)
+    assert ((uv >= 10) & (uv <= [629, 469])).all(), uv  # well inside the image ...
+    assert (np.hypot(cam[:, 0], cam[:, 1]) / cam[:, 2] > camera.fold_radius).all()  # ... from beyond the fold
+    truth = scenes.target_truth(camera, Pose.identity(), folded)
+    assert truth is not None and truth.facing_cos > 0.9  # in front, facing the camera
+    assert not truth.disc_visible.any()
+    image = render(camera, Pose.identity(), _white_scene(folded).quads(), background=0.5)
+    assert np.all(image == np.float32(0.5))  # the renderer draws nothing either
+    control = scenes.target_truth(camera, Pose.identity(), near_axis)
+    assert control is not None and control.visible
+
+
 def test_room_targets_lie_on_the_walls_and_make_a_valid_map() -> None:
     rng = np.random.default_rng(0)
     size = (8.0, 6.0, 3.0)

@@ -21,6 +21,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+#: The lens's usable field stops at this fraction of the radius where the distortion
+#: polynomial folds back (Camera.field_radius): at the fold the radial map's slope is
+#: zero, so just inside it projections are degenerate and undistortion ill-conditioned.
+FOLD_FRACTION = 0.95
+
 #: How far the ideal (undistorted) rendering canvas may extend beyond the image on each
 #: side, as a fraction of the image size. Strong barrel distortion sends the corners'
 #: undistorted positions very far out; past this they are rendered as background.
@@ -387,6 +392,41 @@ class Camera:
                 break
         return self._to_pixels(x, y)
 
+    # ---- field of view ----------------------------------------------------------------
+
+    @property
+    def fold_radius(self) -> float:
+        """Normalised radius (X/Z) where the radial map r -> r (1 + k1 r^2 + k2 r^4 +
+        k3 r^6) first stops increasing; inf when it never does.
+
+        Beyond it the distortion polynomial folds back: a point far off the image (even
+        70 degrees off axis) can `project` into it. Exact: the smallest positive root of
+        the slope 1 + 3 k1 u + 5 k2 u^2 + 7 k3 u^3 in u = r^2 (tangential terms, tiny
+        for real lenses, are ignored). Cached per camera value (_field_extent).
+        """
+        return _field_extent(self)[1]
+
+    def field_radius(self, margin: float = 1.0) -> float:
+        """Normalised radius (X/Z) of the field this camera sees: `margin` times that of
+        the image's farthest corner, never past FOLD_FRACTION of `fold_radius`.
+
+        The one place that answers "could this ray be in the image": within it
+        `project` is trustworthy, beyond it a point is off the image however its
+        (possibly folded) projection looks. margin 1.0: exactly the image's rays (an
+        in-image point never lies beyond, for a radial lens); > 1: a safety band.
+        """
+        corner, fold = _field_extent(self)
+        return min(margin * corner, FOLD_FRACTION * fold)
+
+    def in_field(self, points_cam: ArrayLike, margin: float = 1.0) -> np.ndarray:
+        """(N,) bool: camera-frame points (N, 3) in front of the camera (z > 0) and
+        within `field_radius(margin)`, i.e. rays that can reach the image; the test
+        to apply before trusting `project` (it folds far-off points into the image)."""
+        X = _points(points_cam, 3, "points_cam")
+        limit = self.field_radius(margin)
+        z = X[:, 2]
+        return (z > 0) & (np.hypot(X[:, 0], X[:, 1]) <= limit * z)
+
     # ---- whole-image distortion -------------------------------------------------------
 
     @functools.cached_property
@@ -431,3 +471,40 @@ class Camera:
         rx.setflags(write=False)
         ry.setflags(write=False)
         return IdealCanvas(x0=x0, y0=y0, width=x1 - x0, height=y1 - y0, map_x=rx, map_y=ry)
+
+
+def _field_extent(camera: Camera) -> tuple[float, float]:
+    """(normalised radius of the image's farthest corner, fold radius) of a camera.
+
+    Cached by the camera's value, not its identity: a tracking stream may build a new
+    Camera per frame (scaled_to, per-stream intrinsics), and this costs ~0.2 ms. The
+    cache holds the parameters only, never a Camera (whose cached distortion maps
+    are megabytes)."""
+    return _field_extent_of(camera._key())
+
+
+@functools.lru_cache(maxsize=64)
+def _field_extent_of(key: tuple[bytes, bytes, int, int]) -> tuple[float, float]:
+    """_field_extent of the camera with ``Camera._key() == key``.
+
+    The corners are the pixel areas' outer edges (-0.5 and w - 0.5), undistorted:
+    every pixel's ray lies within that radius. A corner that no ray reaches (a wild
+    lens whose polynomial turns back before the image's edge; undistortion does not
+    converge there) counts as infinitely far: the fold then bounds the field.
+    """
+    K, dist, w, h = key
+    camera = Camera(np.frombuffer(K).reshape(3, 3), np.frombuffer(dist), w, h)
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+    x, y = camera._to_normalised(camera.undistort_pixels(corners))
+    radius = np.hypot(x, y)
+    if camera.has_distortion:
+        xd, yd = camera._to_normalised(corners)
+        ux, uy = camera._distort(x, y)
+        radius[np.hypot(ux - xd, uy - yd) > 1e-9 * (1.0 + np.hypot(xd, yd))] = np.inf
+    corner = float(radius.max())
+    k1, k2, _, _, k3 = (float(v) for v in camera.dist)
+    # d/dr r (1 + k1 u + k2 u^2 + k3 u^3) with u = r^2; leading zeros dropped for np.roots.
+    coeffs = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]), "f")
+    roots = np.roots(coeffs) if len(coeffs) > 1 else np.zeros(0)
+    u = [float(z.real) for z in roots if abs(z.imag) <= 1e-9 * max(1.0, abs(z.real)) and z.real > 0]
+    return corner, (float(np.sqrt(min(u))) if u else float("inf"))

@@ -17,7 +17,6 @@ numpy, cv2.Rodrigues and the Camera's own projection: no web or storage imports.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -166,29 +165,10 @@ def extrapolate(before: Pose, last: Pose, steps: float) -> Pose:
 # --------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=64)
-def _valid_radius(camera: Camera) -> float:
-    """Normalised image radius (x/z, y/z) below which `camera.project` is trustworthy.
-
-    The distortion polynomial folds over far outside the lens's field: a point well off
-    the image can land inside it. Beyond 1.25x the radius of the image's corners (and
-    short of the fold) a point is simply off the image."""
-    w, h = camera.width, camera.height
-    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
-    ideal = camera.undistort_pixels(corners)
-    x = (ideal[:, 0] - camera.cx) / camera.fx
-    y = (ideal[:, 1] - camera.cy) / camera.fy
-    limit = 1.25 * float(np.sqrt(x * x + y * y).max())
-    if camera.has_distortion:
-        # First radius where the radial map r -> r * (1 + k1 r^2 + k2 r^4 + k3 r^6) turns back.
-        k1, k2, _, _, k3 = camera.dist
-        r = np.linspace(0.0, limit, 512)[1:]
-        r2 = r * r
-        slope = 1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2 + 7.0 * k3 * r2 * r2 * r2
-        bad = np.flatnonzero(slope <= 0.05)
-        if bad.size:
-            limit = min(limit, 0.95 * float(r[bad[0]]))
-    return limit
+#: Normalised field (Camera.field_radius) in which projections are trusted, as a
+#: multiple of the image corners' radius: beyond 1.25x (and short of the fold) a point
+#: is simply off the image; its box is built at the field's edge instead.
+_FIELD_MARGIN = 1.25
 
 
 def _project(camera: Camera, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +176,7 @@ def _project(camera: Camera, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     field (N,)). Points beyond are moved in, along their direction, to the edge of the
     valid field, which lies outside the image: a box reaching them reaches the image's
     edge there, not some place the distortion polynomial folds them back to."""
-    limit = _valid_radius(camera)
+    limit = camera.field_radius(_FIELD_MARGIN)
     x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
     r = np.sqrt(x * x + y * y)
     far = r > limit

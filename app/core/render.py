@@ -459,7 +459,9 @@ def visible_points(
 
     With distortion the ideal projection must also lie in the region the lens actually
     sees (Camera.ideal_canvas): far-off points can fold back into the image through the
-    distortion polynomial.
+    distortion polynomial. For a lens whose image lies inside its fold this is the same
+    as ``Camera.in_field(margin=1.0)``; the canvas is kept because it is what `render`
+    draws, also for a wild lens whose image reaches the fold (where the two differ).
     """
     X = np.asarray(X_map, dtype=np.float64).reshape(-1, 3)
     Xc = pose.transform(X)

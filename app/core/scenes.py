@@ -457,8 +457,19 @@ class FrameTruth:
         }
 
 
+#: A disc is visible only if its ray lies within this multiple of the image corners'
+#: radius (Camera.in_field): 1.0 is exactly the image's rays for a radial lens; the 2%
+#: covers tangential distortion, so no disc genuinely in the image is dropped.
+_FIELD_MARGIN = 1.02
+
+
 def target_truth(camera: Camera, pose: Pose, target: PlacedTarget, border_px: float = 2.0) -> TargetTruth | None:
-    """Ground truth of one target, or None when no part of it is in front of the camera."""
+    """Ground truth of one target, or None when no part of it is in front of the camera.
+
+    A disc is visible when it projects inside the image (``border_px`` in) and its ray
+    is within the lens's field: far off axis (~70 degrees for k1 = -0.12) the distortion
+    polynomial folds points back into the image, where the renderer draws nothing.
+    """
     discs = target.discs
     cam = pose.transform(discs)
     if (cam[:, 2] <= 0.01).all():
@@ -468,6 +479,7 @@ def target_truth(camera: Camera, pose: Pose, target: PlacedTarget, border_px: fl
     uv[in_front] = camera.project(cam[in_front])
     inside = (
         in_front
+        & camera.in_field(cam, _FIELD_MARGIN)
         & (uv[:, 0] >= border_px) & (uv[:, 0] <= camera.width - 1 - border_px)
         & (uv[:, 1] >= border_px) & (uv[:, 1] <= camera.height - 1 - border_px)
     )

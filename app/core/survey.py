@@ -944,25 +944,17 @@ def bundle_adjust(
     return out, info
 
 
-def _field_radius(camera: Camera) -> float:
-    """The widest normalised radius (X/Z) the camera sees: that of the image corner
-    furthest from the principal point, with a margin, and never past the radius where
-    the distortion polynomial turns back (beyond it far points fold into the image)."""
-    w, h = camera.width - 1.0, camera.height - 1.0
-    corners = _normalised(camera, np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]))
-    radius = 1.1 * float(np.linalg.norm(corners, axis=1).max())
-    k1, k2 = float(camera.dist[0]), float(camera.dist[1])
-    # d/dr r (1 + k1 r^2 + k2 r^4) = 1 + 3 k1 u + 5 k2 u^2 (u = r^2): its first zero.
-    roots = np.roots([5 * k2, 3 * k1, 1.0]) if (k1 or k2) else np.zeros(0)
-    u = [float(z.real) for z in np.atleast_1d(roots) if abs(z.imag) < 1e-12 and z.real > 0]
-    return min(radius, float(np.sqrt(min(u)))) if u else radius
+#: A view of a point counts only within this multiple of the image corners' radius
+#: (Camera.field_radius, short of the lens's fold): a 10% band for the poses' and the
+#: lens's own errors during the survey.
+_FIELD_MARGIN = 1.1
 
 
-def _view_error(camera: Camera, pose: Pose, X: np.ndarray, uv: np.ndarray, field: float) -> float:
+def _view_error(camera: Camera, pose: Pose, X: np.ndarray, uv: np.ndarray) -> float:
     """Worst reprojection error (px) of one view of a card's discs ``X``; inf when a
-    disc lies behind the camera or outside its field (``_field_radius``)."""
+    disc lies behind the camera or outside its field (``Camera.in_field``)."""
     cam = pose.transform(X)
-    if not ((cam[:, 2] > 0) & (np.hypot(cam[:, 0], cam[:, 1]) < field * cam[:, 2])).all():
+    if not camera.in_field(cam, _FIELD_MARGIN).all():
         return np.inf
     return float(np.abs(camera.project_map(X, pose) - uv).max())
 
@@ -973,7 +965,6 @@ def _errors(bundle: _Bundle, tracks: _Tracks, obs: np.ndarray) -> np.ndarray:
     observation cannot be of that point, however well its projection fits (a point
     past the lens's field can project into the image, folded by the distortion)."""
     err = np.full(len(obs), np.nan)
-    field = _field_radius(bundle.camera)
     of = tracks.frame[obs]
     order = np.argsort(of, kind="stable")
     obs_sorted = obs[order]
@@ -989,7 +980,7 @@ def _errors(bundle: _Bundle, tracks: _Tracks, obs: np.ndarray) -> np.ndarray:
         uv, _ = _project_frame(bundle.camera, bundle.rvec[f], bundle.tvec[f], X[ok], False)
         idx = order[s:e][ok]
         cam = bundle.pose(f).transform(X[ok])
-        seen = (cam[:, 2] > 0) & (np.hypot(cam[:, 0], cam[:, 1]) < field * cam[:, 2])
+        seen = bundle.camera.in_field(cam, _FIELD_MARGIN)
         err[idx] = np.where(seen, np.linalg.norm(uv - tracks.uv[obs_sorted[s:e][ok]], axis=1), np.inf)
     return err
 
@@ -1136,7 +1127,6 @@ def survey(
         whatever that frame's position.
         """
         tol_px = outlier_px if lens_refined else loose_px
-        field = _field_radius(bundle.camera)
         if len(views) > 30:  # enough to tell the tilts apart, evenly over the track
             views = [views[k] for k in np.linspace(0, len(views) - 1, 30).round().astype(int)]
         poses = [bundle.pose(view_frame[v]) for v in views]
@@ -1147,7 +1137,7 @@ def survey(
 
         def errors(card: Pose) -> np.ndarray:
             X = card.transform(model)
-            return np.array([_view_error(bundle.camera, p, X, view_uv[v], field)
+            return np.array([_view_error(bundle.camera, p, X, view_uv[v])
                              for p, v in zip(poses, views, strict=True)])
 
         def tilt_cost(R: np.ndarray, among: np.ndarray) -> float:
