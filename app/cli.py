@@ -20,7 +20,7 @@ def _serve(args: argparse.Namespace) -> int:
         host=args.host or settings.host,
         port=args.port or settings.port,
         workers=args.workers,
-        ws="websockets",
+        ws="websockets-sansio",  # ("websockets", the legacy implementation, is deprecated)
         # Frames are JPEGs: deflate cannot shrink them and costs ~10 ms per 200 KB frame.
         ws_per_message_deflate=False,
         proxy_headers=True,
