@@ -143,6 +143,211 @@ def _reference_centroid_step(img: np.ndarray, centroid: np.ndarray, jac: np.ndar
     return new, np.where(good, total, 0.0), white - black, white
 
 
+# The grouping as it was before its kernels (edge_sweep, edge_ranks_keep, group_graph):
+# `_reference_group` is `targets._group`, vectorised.
+
+
+def _reference_quad_geometry_ok(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> np.ndarray:
+    if x.shape[1] == 0:
+        return np.zeros(0, bool)
+    xn, yn = x[tg._NEXT], y[tg._NEXT]
+    t = x * yn - xn * y
+    area = 0.5 * (t[0] + t[1] + t[2] + t[3])
+    rm = 0.25 * (r[0] + r[1] + r[2] + r[3])
+    # sqrt(area) / radius is the same for every affine view of a card
+    lo, hi = tg.SQRT_AREA_OVER_RADIUS[0] ** 2, tg.SQRT_AREA_OVER_RADIUS[1] ** 2
+    ok = (area >= lo * rm * rm) & (area <= hi * rm * rm)
+    ok &= r.max(axis=0) <= tg.RADIUS_RATIO_MAX * r.min(axis=0)
+    ex, ey = xn - x, yn - y  # e[k] = p[k+1] - p[k]
+    s2 = ex * ex + ey * ey
+    ok &= s2.min(axis=0) >= tg.SIDE_RATIO_MIN**2 * s2.max(axis=0)
+    exn, eyn, s2n = ex[tg._NEXT], ey[tg._NEXT], s2[tg._NEXT]
+    cross = ex * eyn - ey * exn
+    dot = ex * exn + ey * eyn
+    # convex and turning like the layout; interior angle at every vertex in range
+    ok &= ((cross > 0) & (dot * dot < tg._COS2_ANGLE * s2 * s2n)).all(axis=0)
+    return ok
+
+
+def _reference_edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = pts.shape[0]
+    order = np.argsort(pts[:, 0], kind="stable")
+    # (ndarray.take: cheaper than fancy indexing, the more so on rows of 2-d arrays)
+    xs, ys, rs = pts[:, 0].take(order), pts[:, 1].take(order), rad.take(order)
+    reach = (1.5 * tg.EDGE_OVER_RADIUS[1]) * rs
+    start = np.arange(1, n + 1)
+    cnt = np.maximum(np.searchsorted(xs, xs + reach, side="right") - start, 0)
+    total = int(cnt.sum())
+    if total == 0:
+        z = np.zeros(0, np.intp)
+        return z, z
+    # pairs (a, b) of positions in x order: b runs over start[a] .. start[a] + cnt[a] - 1
+    a = np.repeat(np.arange(n), cnt)
+    b = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt - start, cnt)
+    ra, rb = np.repeat(rs, cnt), rs.take(b)  # (np.repeat: cheaper than gathering by a)
+    dx, dy = xs.take(b) - np.repeat(xs, cnt), ys.take(b) - np.repeat(ys, cnt)
+    d2 = dx * dx + dy * dy
+    rs2 = ra + rb
+    rs2 *= 0.5
+    rs2 *= rs2
+    ok = (rb <= tg.RADIUS_RATIO_MAX * ra) & (ra <= tg.RADIUS_RATIO_MAX * rb)
+    ok &= (d2 >= tg.EDGE_OVER_RADIUS[0] ** 2 * rs2) & (d2 <= tg.EDGE_OVER_RADIUS[1] ** 2 * rs2)
+    sel = np.flatnonzero(ok)
+    a, b = order[a[sel]], order[b[sel]]
+    if a.size == 0:
+        return a, b
+    deg = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
+    crowded = deg > tg.EDGE_KEEP
+    if crowded.any():
+        # An edge goes when both its ends are crowded and neither ranks it among its
+        # `EDGE_KEEP` most side-like (4.8 radii apart, equal radii).
+        ca, cb = crowded[a], crowded[b]
+        if (ca & cb).any():
+            inc = np.flatnonzero(ca | cb)  # every edge of a crowded end
+            s_inc = sel[inc]
+            bad = (np.abs(np.log(d2[s_inc] / (23.04 * rs2[s_inc]))) * 0.5
+                   + 0.5 * np.abs(np.log(rb[s_inc] / ra[s_inc])))
+            m = inc.size
+            ends = np.concatenate([a[inc], b[inc]])
+            key = np.lexsort((np.concatenate([bad, bad]), ends))
+            se = ends[key]
+            rank = np.empty(2 * m, np.intp)
+            rank[key] = np.arange(2 * m) - np.searchsorted(se, se, side="left")
+            drop = np.zeros(a.size, bool)
+            drop[inc] = (rank[:m] >= tg.EDGE_KEEP) & (rank[m:] >= tg.EDGE_KEEP) & ca[inc] & cb[inc]
+            keep = ~drop
+            a, b = a[keep], b[keep]
+    return np.minimum(a, b), np.maximum(a, b)
+
+
+def _reference_card_corners(pts: np.ndarray, rad: np.ndarray, i: np.ndarray, j: np.ndarray, l_: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    px, py = pts[:, 0], pts[:, 1]
+    xi, yi = px[i], py[i]
+    ax, ay = px[j] - xi, py[j] - yi
+    bx, by = px[l_] - xi, py[l_] - yi
+    cross = ax * by - ay * bx
+    flip = cross < 0
+    j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
+    cross = np.abs(cross)
+    dot = ax * bx + ay * by
+    l1, l2 = ax * ax + ay * ay, bx * bx + by * by
+    r2 = rad[i] ** 2
+    short2 = np.minimum(l1, l2)
+    ok = (dot * dot < tg._COS2_ANGLE * l1 * l2) & (short2 >= tg.SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
+    ok &= (cross >= tg.APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= tg.APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
+    return j, l_, short2, ok
+
+
+def _reference_group(candidates: np.ndarray, img: np.ndarray | None = None, scale: float = 1.0
+                     ) -> tuple[np.ndarray, tg._Graph | None]:
+    empty = np.zeros((0, 4), np.intp)
+    idx = tg._clean(candidates)
+    n = idx.size
+    if n < 3:
+        return empty, None
+    c = np.asarray(candidates, np.float64).take(idx, axis=0)
+    pts, rad = c[:, :2].copy(), c[:, 2].copy()  # contiguous: for ndarray.take
+    ea, eb = _reference_edges(pts, rad)
+    dark = white = None
+    if img is not None and ea.size:
+        keep, dark, white = tg._side_test(pts, ea, eb, img, scale)
+        ea, eb, white = ea[keep], eb[keep], white[keep]
+    # adjacency in CSR form, both directions, each row sorted by neighbour index
+    src = np.concatenate([ea, eb])
+    dst = np.concatenate([eb, ea])
+    key = np.argsort(src * n + dst)
+    src, dst = src[key], dst[key]
+    deg = np.bincount(src, minlength=n)
+    row_end = np.cumsum(deg)
+    # every apex pair: entries (first, second) of one row, first before second
+    pos = np.arange(src.size)
+    more = row_end[src] - pos - 1  # entries after this one in the same row
+    tot = int(more.sum())
+    if tot == 0:
+        return empty, tg._Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark)
+    first = np.repeat(pos, more)
+    second = np.arange(tot) - np.repeat(np.cumsum(more) - more - pos - 1, more)
+    i = src[first]
+    j0 = dst[first]
+    j, l_, short2, ok = _reference_card_corners(pts, rad, i, j0, dst[second])
+    corners = corner_white = None
+    if dark is not None:
+        # completion's corners (any apex): similar radii at j and l too
+        rj, rl = rad[j], rad[l_]
+        sel = np.flatnonzero(ok & (rj <= tg.RADIUS_RATIO_MAX * rl) & (rl <= tg.RADIUS_RATIO_MAX * rj))
+        corners = np.array([i[sel], j[sel], l_[sel]])
+        white = np.concatenate([white, white])[key]
+        corner_white = np.minimum(white[first[sel]], white[second[sel]])
+    graph = tg._Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark, corners=corners,
+                      corner_white=corner_white)
+    if n < 4 or ea.size < 2:
+        return empty, graph
+    # the grouping's apex is the lowest index of its card: i < j, l
+    sel = np.flatnonzero(ok & (j0 > i))
+    if sel.size == 0:
+        return empty, graph
+    i, j, l_, short2 = i[sel], j[sel], l_[sel], short2[sel]
+    px, py = pts[:, 0], pts[:, 1]
+    predx, predy = px[j] + px[l_] - px[i], py[j] + py[l_] - py[i]
+    # the fourth disc neighbours j: every neighbour of j near the prediction
+    dj = deg[j]
+    tot = int(dj.sum())
+    t = np.repeat(np.arange(i.size), dj)
+    k = dst[np.arange(tot) - np.repeat(np.cumsum(dj) - dj - (row_end[j] - dj), dj)]
+    ex, ey = px[k] - predx[t], py[k] - predy[t]
+    good = (ex * ex + ey * ey <= tg.FOURTH_TOLERANCE**2 * short2[t]) & (k > i[t]) & (k != l_[t])
+    t, k = t[good], k[good]
+    if t.size == 0:
+        return empty, graph
+    quads = np.array([i[t], j[t], k, l_[t]])  # (4, P)
+    quads = quads[:, _reference_quad_geometry_ok(px.take(quads), py.take(quads), rad.take(quads))]
+    return idx.take(quads.T), graph
+
+
+# `targets._measures_from` as it was before `kernels.measure_stats` (one sort of the
+# groups, each lifted by its own multiple of 1024: whole grey levels sort apart)
+
+
+def _reference_measures_from(vals: np.ndarray, inside: np.ndarray, plan: tg._SamplePlan, cells: bool = True
+                             ) -> tg._Measures:
+    lift = np.repeat(1024.0 * np.arange(5), np.diff(plan.sorted_bounds)).astype(np.float32)
+    p = vals.shape[0]
+    s = vals.take(plan.sorted_index, axis=1)  # (ndarray.take: several times cheaper than fancy indexing)
+    s += lift
+    inside_edge = inside.take(plan.edge, axis=1)
+    s[:, plan.sorted_bounds[4]:][~inside_edge] = np.inf  # outside the image: no evidence
+    s.sort(axis=1)
+    s -= lift
+    # every order statistic at once (`_SamplePlan.stats_lo`), as `_quantile_sorted` would
+    lo = s.take(plan.stats_lo, axis=1)
+    q = lo + plan.stats_frac * (s.take(plan.stats_hi, axis=1) - lo)
+    black, white = q[:, 0], q[:, 1]
+    contrast = white - black
+    c = np.maximum(contrast, 1e-3)
+    uniformity = (q[:, 2] - q[:, 3]) / c
+    white_low, gap_low, disc_max = ((q[:, 4:] - black[:, None]) / c[:, None]).T
+    disc_means = (tg._mean(vals.take(plan.disc, axis=1), 2) - black[:, None]) / c[:, None]
+    n_in = np.count_nonzero(inside_edge, axis=1)
+    edge_med = s[np.arange(p), plan.sorted_bounds[4] + n_in // 2]
+    edge_level = np.where(n_in >= 4, (edge_med - black) / c, 1.0)
+    # Discs and code must be wholly in the image; the white margin mostly.
+    valid = np.where(inside.take(plan.core, axis=1).all(axis=1), np.count_nonzero(inside, axis=1) / inside.shape[1],
+                     0.0)
+    dmax, dmin = disc_means.max(axis=1), disc_means.min(axis=1)
+    cell_means = None
+    if cells:
+        # (P, n*n, S); fancy indexing, not take: its (n*n, S, P) memory layout carries into
+        # the template fit, whose float32 sums depend on it
+        cell_vals = (vals[:, plan.cells] - black[:, None, None]) / c[:, None, None]
+        cell_means = tg._mean(cell_vals, 2)
+    return tg._Measures(
+        black=black, white=white, contrast=contrast, uniformity=uniformity,
+        disc_level=dmax, disc_spread=dmax - dmin, disc_max=disc_max, white_low=white_low, gap_low=gap_low,
+        edge_level=edge_level, valid=valid, cells=cell_means,
+    )
+
+
 def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     """A random image with dark blobs of every size (plenty of maxima and ties)."""
     img = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), float(rng.uniform(0.3, 3)))
@@ -266,6 +471,102 @@ def test_centroid_step_matches_numpy() -> None:
         expected = _reference_centroid_step(img, centroid, jac, tg.REFINE_WINDOW + tg.REFINE_TAPER, white)
         for g, e in zip(got, expected, strict=True):
             np.testing.assert_array_equal(g, e)
+
+
+def _random_candidates(rng: np.random.Generator, trial: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidates (N, 4) in full-resolution pixels over a level-1 image (h, w): random
+    points, and by turns a tight cluster (crowded edges), a grid (ties in x), card-like
+    parallelograms of discs (rendered dark on white: they pass the side test), rows
+    that `_clean` drops, float32."""
+    img = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), float(rng.uniform(0.5, 3)))
+    n = int(rng.integers(0, 80))
+    c = np.stack([rng.uniform(0, 2 * w, n), rng.uniform(0, 2 * h, n), rng.uniform(1, 8, n), rng.uniform(0, 1, n)], 1)
+    if trial % 3 == 0 and n:
+        k = min(n, 40)
+        c[:k, :2] = rng.uniform(50, 90, (k, 2))
+        c[:k, 2] = rng.uniform(2, 4, k)
+    if trial % 4 == 1 and n > 3:
+        c[:, 0] = 20 + 12 * (np.arange(n) % 7) + (trial % 8 == 1) * rng.uniform(-0.3, 0.3, n)
+        c[:, 1] = 20 + 12 * (np.arange(n) // 7)
+        c[:, 2] = 2.5
+    if trial % 2 == 0:
+        img = np.full((h, w), 200, np.uint8)
+        rows = []
+        for _ in range(int(rng.integers(1, 6))):
+            origin, side = rng.uniform(20, 2 * w - 60, 2), rng.uniform(15, 60)
+            axes = side * (np.eye(2) + rng.uniform(-0.3, 0.3, (2, 2)))
+            for corner in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = origin + axes @ np.array(corner, float) + rng.uniform(-1, 1, 2)
+                r = side * 0.125 / 0.6 * rng.uniform(0.7, 1.4)
+                rows.append([p[0], p[1], r, rng.uniform()])
+                cv2.circle(img, (int(p[0] / 2), int(p[1] / 2)), max(int(r / 2), 1), 30, -1)
+        c = np.concatenate([c, np.array(rows)])[rng.permutation(n + len(rows))]
+    if trial % 5 == 2 and n > 3:
+        c[0, 0], c[1], c[3, 2] = np.nan, c[2], -1.0
+    return (c.astype(np.float32) if trial % 7 == 3 else c), img
+
+
+def test_grouping_kernels_match_numpy() -> None:
+    """`targets._group` (edge_sweep, edge_ranks_keep, group_graph) against the
+    vectorised grouping: the proposals and every field of the graph, bit for bit."""
+    rng = np.random.default_rng(16)
+    n_quads = n_corners = 0
+    for trial in range(600):
+        cands, img = _random_candidates(rng, trial, 120, 160)
+        for level in (img, None):
+            got, got_graph = tg._group(cands, level, 0.5)
+            expected, expected_graph = _reference_group(cands, level, 0.5)
+            np.testing.assert_array_equal(got, expected)
+            assert got.dtype == expected.dtype and got.shape == expected.shape
+            n_quads += expected.shape[0]
+            if expected_graph is None:
+                assert got_graph is None
+                continue
+            for name in ("idx", "pts", "rad", "src", "dst", "dark", "corners", "corner_white"):
+                g, e = getattr(got_graph, name), getattr(expected_graph, name)
+                assert (g is None) == (e is None), name
+                if e is not None:
+                    assert g.dtype == e.dtype and g.shape == e.shape, name
+                    np.testing.assert_array_equal(g, e)
+            n_corners += 0 if expected_graph.corners is None else expected_graph.corners.shape[1]
+    assert n_quads > 500 and n_corners > 5000  # the search was exercised
+
+
+def test_affine_points_match_numpy() -> None:
+    rng = np.random.default_rng(17)
+    for coef in (tg._corner_look_points(), tg._plan_affine(3), tg._plan_affine(4)):
+        for s in (0, 1, 7, 40):
+            pi, pj, pl = (rng.uniform(-50, 700, (s, 2)) for _ in range(3))
+            xy = pi[:, None, :] + coef[None, :, :1] * (pj - pi)[:, None, :] + coef[None, :, 1:] * (pl - pi)[:, None, :]
+            inside = ((xy >= -0.5) & (xy <= np.array([640 - 0.5, 480 - 0.5]))).all(axis=-1)
+            got_xy, got_inside = kernels.affine_points(pi, pj, pl, coef, 640, 480)
+            np.testing.assert_array_equal(got_xy, xy.astype(np.float32))
+            np.testing.assert_array_equal(got_inside, inside)
+            assert got_xy.dtype == np.float32 and got_xy.shape == xy.shape
+
+
+def test_measure_stats_match_numpy() -> None:
+    """`targets._measures_from` (`kernels.measure_stats`) against the vectorised
+    measurements: every field, bit for bit, with samples outside the image (edge
+    groups partly or wholly outside, core samples outside) and ties."""
+    rng = np.random.default_rng(18)
+    for n in (3, 4):
+        plan = tg._plan(n)
+        m = plan.points.shape[0]
+        for trial in range(200):
+            p = int(rng.integers(0, 6))
+            levels = rng.integers(0, 256, 2)
+            vals = rng.integers(min(levels), max(levels) + 1, (p, m)).astype(np.float32)
+            inside = rng.random((p, m)) > rng.choice([0.0, 0.05, 0.5, 1.0])
+            got = tg._measures_from(vals, inside, plan, cells=trial % 2 == 0)
+            expected = _reference_measures_from(vals, inside, plan, cells=trial % 2 == 0)
+            for name in expected.__dataclass_fields__:
+                g, e = getattr(got, name), getattr(expected, name)
+                if e is None:
+                    assert g is None
+                    continue
+                assert g.dtype == e.dtype and g.shape == e.shape, name
+                np.testing.assert_array_equal(g, e, err_msg=name)
 
 
 def test_warm_up_compiles_what_the_detector_calls() -> None:

@@ -44,8 +44,9 @@ of the output follows DESIGN.md: 0 top-left, 1 top-right, 2 bottom-right, 3 bott
 as printed, the card upright as its code defines.
 
 numpy/OpenCV/SciPy, and numba kernels (`app.core.kernels`) where a fused loop over
-small arrays beats numpy's per-call overhead (the refinement's centroid step), with
-identical results. No I/O.
+small arrays beats numpy's per-call overhead (the grouping's sweep and search, the
+verification's order statistics, the affine points of completion, the refinement's
+centroid step), with identical results. No I/O.
 """
 
 from __future__ import annotations
@@ -284,33 +285,8 @@ def _clean(candidates: np.ndarray) -> np.ndarray:
 
 #: cos^2 of the smallest interior angle (`ANGLE_RANGE_DEG`; the largest is its supplement).
 _COS2_ANGLE = float(np.cos(np.deg2rad(ANGLE_RANGE_DEG[0])) ** 2)
-#: Vertex k + 1 of a quadrilateral, for the arrays (4, P) of `_quad_geometry_ok`.
+#: Vertex k + 1 of a quadrilateral.
 _NEXT = np.array([1, 2, 3, 0])
-
-
-def _quad_geometry_ok(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Cheap geometric checks of disc quadrilaterals with vertices (x, y) (4, P) and
-    candidate radii r (4, P), vertices in the layout's orientation: bool (P,). Squared
-    quantities (no square roots or arc cosines); vertex-major arrays, so each check is
-    one numpy call for all four vertices (a reduction over a short last axis is slow)."""
-    if x.shape[1] == 0:
-        return np.zeros(0, bool)
-    xn, yn = x[_NEXT], y[_NEXT]
-    t = x * yn - xn * y
-    area = 0.5 * (t[0] + t[1] + t[2] + t[3])
-    rm = 0.25 * (r[0] + r[1] + r[2] + r[3])
-    # sqrt(area) / radius is the same for every affine view of a card
-    ok = (area >= (SQRT_AREA_OVER_RADIUS[0] ** 2) * rm * rm) & (area <= (SQRT_AREA_OVER_RADIUS[1] ** 2) * rm * rm)
-    ok &= r.max(axis=0) <= RADIUS_RATIO_MAX * r.min(axis=0)
-    ex, ey = xn - x, yn - y  # e[k] = p[k+1] - p[k]
-    s2 = ex * ex + ey * ey
-    ok &= s2.min(axis=0) >= SIDE_RATIO_MIN**2 * s2.max(axis=0)
-    exn, eyn, s2n = ex[_NEXT], ey[_NEXT], s2[_NEXT]
-    cross = ex * eyn - ey * exn
-    dot = ex * exn + ey * eyn
-    # convex and turning like the layout; interior angle at every vertex in range
-    ok &= ((cross > 0) & (dot * dot < _COS2_ANGLE * s2 * s2n)).all(axis=0)
-    return ok
 
 
 #: Grouping: every pair of candidates that could be neighbouring discs of one card
@@ -332,77 +308,22 @@ def _edges(pts: np.ndarray, rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     / 2 <= 1.5 * EDGE_OVER_RADIUS[1] * min(ra, rb)`` apart, so each candidate only
     looks right, within that reach of its own radius; a few thousand pairs per frame,
     cheaper than k nearest-neighbour queries."""
-    n = pts.shape[0]
-    order = np.argsort(pts[:, 0], kind="stable")
-    # (ndarray.take: cheaper than fancy indexing, the more so on rows of 2-d arrays)
-    xs, ys, rs = pts[:, 0].take(order), pts[:, 1].take(order), rad.take(order)
-    reach = (1.5 * EDGE_OVER_RADIUS[1]) * rs
-    start = np.arange(1, n + 1)
-    cnt = np.maximum(np.searchsorted(xs, xs + reach, side="right") - start, 0)
-    total = int(cnt.sum())
-    if total == 0:
-        z = np.zeros(0, np.intp)
-        return z, z
-    # pairs (a, b) of positions in x order: b runs over start[a] .. start[a] + cnt[a] - 1
-    a = np.repeat(np.arange(n), cnt)
-    b = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt - start, cnt)
-    ra, rb = np.repeat(rs, cnt), rs.take(b)  # (np.repeat: cheaper than gathering by a)
-    dx, dy = xs.take(b) - np.repeat(xs, cnt), ys.take(b) - np.repeat(ys, cnt)
-    d2 = dx * dx + dy * dy
-    rs2 = ra + rb
-    rs2 *= 0.5
-    rs2 *= rs2
-    ok = (rb <= RADIUS_RATIO_MAX * ra) & (ra <= RADIUS_RATIO_MAX * rb)
-    ok &= (d2 >= EDGE_OVER_RADIUS[0] ** 2 * rs2) & (d2 <= EDGE_OVER_RADIUS[1] ** 2 * rs2)
-    sel = np.flatnonzero(ok)
-    a, b = order[a[sel]], order[b[sel]]
+    # the sweep and the distance / radius tests: one compiled loop (`kernels.edge_sweep`)
+    a, b, d2, rs2, ra, rb, crowded = kernels.edge_sweep(
+        pts, rad, 1.5 * EDGE_OVER_RADIUS[1], RADIUS_RATIO_MAX, EDGE_OVER_RADIUS[0] ** 2, EDGE_OVER_RADIUS[1] ** 2,
+        EDGE_KEEP)
     if a.size == 0:
         return a, b
-    deg = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
-    crowded = deg > EDGE_KEEP
     if crowded.any():
         # An edge goes when both its ends are crowded and neither ranks it among its
         # `EDGE_KEEP` most side-like (4.8 radii apart, equal radii).
-        ca, cb = crowded[a], crowded[b]
+        ca, cb = crowded.take(a), crowded.take(b)
         if (ca & cb).any():
             inc = np.flatnonzero(ca | cb)  # every edge of a crowded end
-            s_inc = sel[inc]
-            bad = np.abs(np.log(d2[s_inc] / (23.04 * rs2[s_inc]))) * 0.5 + 0.5 * np.abs(np.log(rb[s_inc] / ra[s_inc]))
-            m = inc.size
-            ends = np.concatenate([a[inc], b[inc]])
-            key = np.lexsort((np.concatenate([bad, bad]), ends))
-            se = ends[key]
-            rank = np.empty(2 * m, np.intp)
-            rank[key] = np.arange(2 * m) - np.searchsorted(se, se, side="left")
-            drop = np.zeros(a.size, bool)
-            drop[inc] = (rank[:m] >= EDGE_KEEP) & (rank[m:] >= EDGE_KEEP) & ca[inc] & cb[inc]
-            keep = ~drop
+            bad = np.abs(np.log(d2[inc] / (23.04 * rs2[inc]))) * 0.5 + 0.5 * np.abs(np.log(rb[inc] / ra[inc]))
+            keep = kernels.edge_ranks_keep(a, b, crowded, inc, bad, EDGE_KEEP)
             a, b = a[keep], b[keep]
     return np.minimum(a, b), np.maximum(a, b)
-
-
-def _card_corners(pts: np.ndarray, rad: np.ndarray, i: np.ndarray, j: np.ndarray, l_: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Apex triples (i; j, l) as card corners: (j, l) oriented so that j follows i
-    clockwise on screen (as disc 1 follows disc 0) and l precedes it, the shorter side
-    squared, and whether the corner is plausible: interior angle in range, side ratio,
-    parallelogram area over the apex radius squared ((0.6 / 0.125)^2 for any affine view
-    of a card)."""
-    px, py = pts[:, 0], pts[:, 1]
-    xi, yi = px[i], py[i]
-    ax, ay = px[j] - xi, py[j] - yi
-    bx, by = px[l_] - xi, py[l_] - yi
-    cross = ax * by - ay * bx
-    flip = cross < 0
-    j, l_ = np.where(flip, l_, j), np.where(flip, j, l_)
-    cross = np.abs(cross)
-    dot = ax * bx + ay * by
-    l1, l2 = ax * ax + ay * ay, bx * bx + by * by
-    r2 = rad[i] ** 2
-    short2 = np.minimum(l1, l2)
-    ok = (dot * dot < _COS2_ANGLE * l1 * l2) & (short2 >= SIDE_RATIO_MIN**2 * np.maximum(l1, l2))
-    ok &= (cross >= APEX_AREA_OVER_RADIUS[0] ** 2 * r2) & (cross <= APEX_AREA_OVER_RADIUS[1] ** 2 * r2)
-    return j, l_, short2, ok
 
 
 def group_candidates(candidates: np.ndarray) -> np.ndarray:
@@ -417,9 +338,9 @@ def group_candidates(candidates: np.ndarray) -> np.ndarray:
     4-cycle of edges. It is found from its lowest-indexed disc i (the apex): two of its
     edges, to j and l, span a plausible corner of a card (angle, side ratio, area over
     radius), and the fourth disc k is a neighbour of j near the parallelogram
-    prediction j + l - i, with k > i, so each cycle is reported once. Proposals pass the
-    cheap geometric checks (`_quad_geometry_ok`). Degenerate input (fewer than 4 usable
-    candidates, NaN) gives (0, 4).
+    prediction j + l - i, with k > i, so each cycle is reported once. Proposals pass
+    cheap geometric checks (convex, interior angles, side ratio, area over radius).
+    Degenerate input (fewer than 4 usable candidates, NaN) gives (0, 4).
     """
     return _group(candidates)[0]
 
@@ -438,8 +359,9 @@ class _Graph:
     src: np.ndarray
     dst: np.ndarray
     dark: np.ndarray | None = None  # (N,) grey level at each candidate (`_side_test`)
-    #: (3, C) apex triples (i, j, l) of two edges at i that pass `_card_corners` (j, l
-    #: oriented) with similar radii at j and l; in CSR order (apex, then its edges)
+    #: (3, C) apex triples (i, j, l) of two edges at i that make a plausible card corner
+    #: (`_CORNER_LIMITS`; j, l oriented) with similar radii at j and l; in CSR order
+    #: (apex, then its edges)
     corners: np.ndarray | None = None
     corner_white: np.ndarray | None = None  # (C,) the darker of the two sides' darkest white points
 
@@ -501,55 +423,37 @@ def _group(candidates: np.ndarray, img: np.ndarray | None = None, scale: float =
     if img is not None and ea.size:
         keep, dark, white = _side_test(pts, ea, eb, img, scale)
         ea, eb, white = ea[keep], eb[keep], white[keep]
-    # adjacency in CSR form, both directions, each row sorted by neighbour index
-    src = np.concatenate([ea, eb])
-    dst = np.concatenate([eb, ea])
-    key = np.argsort(src * n + dst)
-    src, dst = src[key], dst[key]
-    deg = np.bincount(src, minlength=n)
-    row_end = np.cumsum(deg)
-    # every apex pair: entries (first, second) of one row, first before second
-    pos = np.arange(src.size)
-    more = row_end[src] - pos - 1  # entries after this one in the same row
-    tot = int(more.sum())
-    if tot == 0:
+    # The search, compiled (`kernels.group_graph`): the adjacency in CSR form (both
+    # directions, each row sorted by neighbour index); every apex pair (two edges at
+    # i, to j and l) as a card corner (angle, side ratio, area over the apex radius:
+    # `_CORNER_LIMITS`), oriented so that j follows i clockwise; with the side test, the
+    # corners for completion (any apex, similar radii at j and l too); and for the
+    # corners whose apex is the lowest index (i < j, l) every neighbour k > i of j near
+    # the parallelogram prediction j + l - i (`FOURTH_TOLERANCE`), the quadrilateral
+    # (i, j, k, l) kept if it passes `_QUAD_LIMITS`.
+    with_corners = dark is not None
+    src, dst, n_pairs, corners, corner_white, quads = kernels.group_graph(
+        pts, rad, ea, eb, white if with_corners else _NO_WHITE, with_corners, *_CORNER_LIMITS,
+        FOURTH_TOLERANCE**2, *_QUAD_LIMITS)
+    if n_pairs == 0:
         return empty, _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark)
-    first = np.repeat(pos, more)
-    second = np.arange(tot) - np.repeat(np.cumsum(more) - more - pos - 1, more)
-    i = src[first]
-    j0 = dst[first]
-    j, l_, short2, ok = _card_corners(pts, rad, i, j0, dst[second])
-    corners = corner_white = None
-    if dark is not None:
-        # completion's corners (any apex): similar radii at j and l too
-        rj, rl = rad[j], rad[l_]
-        sel = np.flatnonzero(ok & (rj <= RADIUS_RATIO_MAX * rl) & (rl <= RADIUS_RATIO_MAX * rj))
-        corners = np.array([i[sel], j[sel], l_[sel]])
-        white = np.concatenate([white, white])[key]
-        corner_white = np.minimum(white[first[sel]], white[second[sel]])
-    graph = _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark, corners=corners, corner_white=corner_white)
+    graph = _Graph(idx=idx, pts=pts, rad=rad, src=src, dst=dst, dark=dark, corners=corners if with_corners else None,
+                   corner_white=corner_white if with_corners else None)
     if n < 4 or ea.size < 2:
         return empty, graph
-    # the grouping's apex is the lowest index of its card: i < j, l
-    sel = np.flatnonzero(ok & (j0 > i))
-    if sel.size == 0:
-        return empty, graph
-    i, j, l_, short2 = i[sel], j[sel], l_[sel], short2[sel]
-    px, py = pts[:, 0], pts[:, 1]
-    predx, predy = px[j] + px[l_] - px[i], py[j] + py[l_] - py[i]
-    # the fourth disc neighbours j: every neighbour of j near the prediction
-    dj = deg[j]
-    tot = int(dj.sum())
-    t = np.repeat(np.arange(i.size), dj)
-    k = dst[np.arange(tot) - np.repeat(np.cumsum(dj) - dj - (row_end[j] - dj), dj)]
-    ex, ey = px[k] - predx[t], py[k] - predy[t]
-    good = (ex * ex + ey * ey <= FOURTH_TOLERANCE**2 * short2[t]) & (k > i[t]) & (k != l_[t])
-    t, k = t[good], k[good]
-    if t.size == 0:
-        return empty, graph
-    quads = np.array([i[t], j[t], k, l_[t]])  # (4, P)
-    quads = quads[:, _quad_geometry_ok(px.take(quads), py.take(quads), rad.take(quads))]
-    return idx.take(quads.T), graph
+    return idx.take(quads), graph
+
+
+#: `kernels.group_graph`'s corner checks: cos^2 of the smallest interior angle, the
+#: smallest squared side ratio, the apex parallelogram's area over the apex radius
+#: squared (bounds), the largest radius ratio of j and l (completion's corners).
+_CORNER_LIMITS = (_COS2_ANGLE, SIDE_RATIO_MIN**2, APEX_AREA_OVER_RADIUS[0] ** 2, APEX_AREA_OVER_RADIUS[1] ** 2,
+                  RADIUS_RATIO_MAX)
+#: and its quadrilateral checks (with the corner's angle and side ratio): area over the
+#: mean radius squared (bounds; sqrt(area) / radius is the same for every affine view of
+#: a card).
+_QUAD_LIMITS = (SQRT_AREA_OVER_RADIUS[0] ** 2, SQRT_AREA_OVER_RADIUS[1] ** 2)
+_NO_WHITE = np.zeros(0, np.float32)
 
 
 # --------------------------------------------------------------------------------------
@@ -571,23 +475,16 @@ class _SamplePlan:
     cells: np.ndarray  # (n*n, S) samples in each code cell, row-major
     n: int
     core: np.ndarray  # discs and code: these must all lie in the image
-    #: `_measures_from` sorts five groups of samples in one call: discs, white, between
-    #: and gap, gap, edge (last: outside the image it reads inf), each lifted by its own
-    #: multiple of `_GROUP_LIFT` so that the groups sort apart.
+    #: `_measures_from` sorts five groups of samples: discs, white, between and gap, gap,
+    #: edge (last: outside the image it reads inf).
     sorted_index: np.ndarray  # (G,) sample indices, group after group
-    sorted_lift: np.ndarray  # (G,) float32 lift of each
-    sorted_groups: tuple[slice, slice, slice, slice, slice]  # each group's columns
+    sorted_bounds: np.ndarray  # (6,) each group's first column, then G
     #: Order statistics read off the sorted groups, each ``s[lo] + frac * (s[hi] - s[lo])``
     #: (np.quantile's linear rule): disc median, white median, P90 and P10 of between and
     #: gap, `WHITE_LOW_PERCENTILE` of white, 2nd lowest gap sample, lightest disc sample.
     stats_lo: np.ndarray
     stats_hi: np.ndarray
     stats_frac: np.ndarray  # float32, as the Python float a float32 array would be scaled by
-
-
-#: Samples are whole grey levels (a uint8 image read by cv2.remap), so lifting a group by
-#: a multiple of this keeps it apart from the others and is undone exactly.
-_GROUP_LIFT = 1024.0
 
 
 @functools.cache
@@ -644,10 +541,7 @@ def _plan(n: int) -> _SamplePlan:
     lo_, hi_, frac = zip(*stats, strict=True)
     plan = _SamplePlan(points=np.concatenate(pts), disc=disc, ring=ring_, between=between, gap=gap, edge=edge,
                        white=white, cells=cells_, n=n, core=np.concatenate([disc.ravel(), cells_.ravel()]),
-                       sorted_index=np.concatenate(groups),
-                       sorted_lift=np.repeat(_GROUP_LIFT * np.arange(len(groups)), [g.size for g in groups]
-                                             ).astype(np.float32),
-                       sorted_groups=tuple(slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)),
+                       sorted_index=np.concatenate(groups), sorted_bounds=bounds.astype(np.intp),
                        stats_lo=np.array(lo_), stats_hi=np.array(hi_), stats_frac=np.array(frac, np.float32))
     return plan
 
@@ -858,32 +752,14 @@ def _plan_and_quick(n: int) -> np.ndarray:
 
 def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan, cells: bool = True) -> _Measures:
     """`_measure` of the samples (P, M) of `plan.points` (whole grey levels: a uint8
-    image read by cv2.remap) and their mask; `cells`: read the code cells too. One sort
-    of the lifted groups (`_SamplePlan.sorted_index`) replaces np.median and
-    np.percentile (~50 us a call) and a sort per group."""
-    p = vals.shape[0]
-    s = vals.take(plan.sorted_index, axis=1)  # (ndarray.take: several times cheaper than fancy indexing)
-    s += plan.sorted_lift
-    inside_edge = inside.take(plan.edge, axis=1)
-    s[:, plan.sorted_groups[4]][~inside_edge] = np.inf  # outside the image: no evidence
-    s.sort(axis=1)
-    s -= plan.sorted_lift
-    # every order statistic at once (`_SamplePlan.stats_lo`), as `_quantile_sorted` would
-    lo = s.take(plan.stats_lo, axis=1)
-    q = lo + plan.stats_frac * (s.take(plan.stats_hi, axis=1) - lo)
-    black, white = q[:, 0], q[:, 1]
-    contrast = white - black
-    c = np.maximum(contrast, 1e-3)
-    uniformity = (q[:, 2] - q[:, 3]) / c
-    white_low, gap_low, disc_max = ((q[:, 4:] - black[:, None]) / c[:, None]).T
-    disc_means = (_mean(vals.take(plan.disc, axis=1), 2) - black[:, None]) / c[:, None]
-    n_in = np.count_nonzero(inside_edge, axis=1)
-    edge_med = s[np.arange(p), plan.sorted_groups[4].start + n_in // 2]
-    edge_level = np.where(n_in >= 4, (edge_med - black) / c, 1.0)
-    # Discs and code must be wholly in the image; the white margin mostly.
-    valid = np.where(inside.take(plan.core, axis=1).all(axis=1), np.count_nonzero(inside, axis=1) / inside.shape[1],
-                     0.0)
-    dmax, dmin = disc_means.max(axis=1), disc_means.min(axis=1)
+    image read by cv2.remap) and their mask; `cells`: read the code cells too. The
+    order statistics (np.median, np.percentile) come from a sort of each group of
+    samples (`_SamplePlan.sorted_index`), all in one compiled loop over the rows
+    (`kernels.measure_stats`)."""
+    stats, valid = kernels.measure_stats(
+        np.ascontiguousarray(vals, np.float32), np.ascontiguousarray(inside), plan.sorted_index, plan.sorted_bounds,
+        plan.stats_lo, plan.stats_hi, plan.stats_frac, plan.disc, plan.edge, plan.core)
+    black, white, contrast, c, uniformity, dmax, spread, disc_max, white_low, gap_low, edge_level = stats
     cell_means = None
     if cells:
         # (P, n*n, S); fancy indexing, not take: its (n*n, S, P) memory layout carries into
@@ -892,7 +768,7 @@ def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan, cell
         cell_means = _mean(cell_vals, 2)
     return _Measures(
         black=black, white=white, contrast=contrast, uniformity=uniformity,
-        disc_level=dmax, disc_spread=dmax - dmin, disc_max=disc_max, white_low=white_low, gap_low=gap_low,
+        disc_level=dmax, disc_spread=spread, disc_max=disc_max, white_low=white_low, gap_low=gap_low,
         edge_level=edge_level, valid=valid, cells=cell_means,
     )
 
@@ -1499,19 +1375,16 @@ def _corner_triples(g: _Graph, free: np.ndarray, img: np.ndarray, scale: float, 
     if full is not None:
         # a first look at the card (a parallelogram: the layout maps affinely) on `full`
         pi, pj, pl = pi.take(sel, axis=0), pj.take(sel, axis=0), pl.take(sel, axis=0)
-        f = _corner_look_points()
-        xy = pi[:, None, :] + f[None, :, :1] * (pj - pi)[:, None, :] + f[None, :, 1:] * (pl - pi)[:, None, :]
-        vals = cv2.remap(full, xy.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        hf, wf = full.shape
+        xy, _ = kernels.affine_points(pi, pj, pl, _corner_look_points(), wf, hf)
+        vals = cv2.remap(full, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         look = np.flatnonzero(_corner_look(vals.astype(np.float32)))
         sel = sel.take(look)
         if sel.size:
             # then the coarse verification, on the same affine guess
             pi, pj, pl = pi.take(look, axis=0), pj.take(look, axis=0), pl.take(look, axis=0)
-            f = _plan_affine(n_cells)
-            xy = pi[:, None, :] + f[None, :, :1] * (pj - pi)[:, None, :] + f[None, :, 1:] * (pl - pi)[:, None, :]
-            hf, wf = full.shape
-            inside = ((xy >= -0.5) & (xy <= np.array([wf - 0.5, hf - 0.5]))).all(axis=-1)
-            vals = cv2.remap(full, xy.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            xy, inside = kernels.affine_points(pi, pj, pl, _plan_affine(n_cells), wf, hf)
+            vals = cv2.remap(full, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             coarse = _measures_from(vals.astype(np.float32), inside, _plan(n_cells), cells=False).passed(coarse=True)
             sel = sel.compress(coarse)
     return i.take(sel), j.take(sel), l_.take(sel), pred.take(sel, axis=0)
