@@ -378,8 +378,8 @@ def test_blob_kernels_match_opencv_bit_for_bit() -> None:
                 got = cand.local_maxima(expected, threshold, ws)
                 np.testing.assert_array_equal(got[0], ys)
                 np.testing.assert_array_equal(got[1], xs)
-                score, gy, gx = cand._blob_maxima(padded, threshold, ws)
-                np.testing.assert_array_equal(score, expected)
+                gy, gx, blob = cand._blob_maxima(padded, threshold, ws)
+                np.testing.assert_array_equal(blob, expected[ys, xs])
                 np.testing.assert_array_equal(gy, ys)
                 np.testing.assert_array_equal(gx, xs)
 

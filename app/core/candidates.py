@@ -398,15 +398,17 @@ def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | No
 
 
 def _blob_maxima(padded: np.ndarray, threshold: float, ws: _Workspace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``blob_scores(padded)`` and ``local_maxima`` of it in one pass (`kernels.blob_maxima`):
-    (score, ys, xs); the score is `ws`'s buffer."""
+    """``local_maxima(blob_scores(padded), threshold)`` and the scores there, in one
+    pass that never writes the score image (`kernels.blob_maxima`): (ys, xs, scores)."""
     h, w = padded.shape
     integral, dil, ero = _tophat_integral(padded, ws)
-    score = ws.get("blob", (h - WINDOW + 1, w - WINDOW + 1), np.float32)
-    max3, row_mask, ys, xs = _maxima_buffers(score.shape, ws)
-    n = kernels.blob_maxima(integral, dil, ero, np.float32(_RANGE_EPS), _threshold32(threshold), score, max3, row_mask,
-                            ys, xs)
-    return score, ys[:n].copy(), xs[:n].copy()
+    shape = (h - WINDOW + 1, w - WINDOW + 1)
+    max3, row_mask, ys, xs = _maxima_buffers(shape, ws)
+    rows = ws.get("blob_rows", (3, shape[1]), np.float32)  # the scores: three rows at a time
+    vals = ws.get("maxima_score", (shape[0] * shape[1],), np.float32)
+    n = kernels.blob_maxima(integral, dil, ero, np.float32(_RANGE_EPS), _threshold32(threshold), rows, max3, row_mask,
+                            ys, xs, vals)
+    return ys[:n].copy(), xs[:n].copy(), vals[:n].copy()
 
 
 def stage1_scores(level: np.ndarray) -> np.ndarray:
@@ -631,8 +633,8 @@ def _scan(gray: np.ndarray, blob_thresholds: float | Sequence[float], workspace:
     levels = pyramid(gray, workspace)
     for level_index, level in enumerate(levels):
         padded = pad_level(level, workspace)
-        score, ys, xs = _blob_maxima(padded, float(thresholds[level_index]), ws)
-        out.append((level_index, padded, _HALF, ys, xs, score[ys, xs]))
+        ys, xs, blob = _blob_maxima(padded, float(thresholds[level_index]), ws)
+        out.append((level_index, padded, _HALF, ys, xs, blob))
     return levels, out
 
 
