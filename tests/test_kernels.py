@@ -364,6 +364,39 @@ def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
+def _reference_window_geometry(windows: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """`candidates.window_radius` then `window_centroid` as numpy chains on (N, 144) rows."""
+    w = np.asarray(windows, dtype=np.float32).reshape(-1, 144)
+    n = w.shape[0]
+    prof = w @ cand._RINGS
+    dark = prof[:, :2].min(axis=1)
+    half = 0.5 * (dark + prof[:, 2:].max(axis=1))
+    below = prof < half[:, None]
+    first = np.where(below.all(axis=1), prof.shape[1], np.argmin(below, axis=1))
+    k = np.minimum(np.maximum(first, 1), prof.shape[1] - 1)
+    flat = prof.reshape(-1)
+    p1_index = np.arange(0, n * prof.shape[1], prof.shape[1]) + k
+    p0, p1 = flat[p1_index - 1], flat[p1_index]
+    step = np.where(np.abs(p1 - p0) > 1e-6, p1 - p0, np.float32(1e-6))
+    radius = cand._RING_MID[k - 1] + np.minimum(np.maximum((half - p0) / step, 0.0), 1.0)
+    radius = (np.where(first == 0, 0.5, radius) * cand._RADIUS_GAIN).astype(np.float32)
+    dark = half[:, None] - w
+    np.maximum(dark, 0.0, out=dark)
+    reach2 = ((radius + 1.0) ** 2)[:, None]
+    offset = np.zeros((n, 2), np.float32)
+    for it in range(iterations):
+        if it == 0:
+            d2 = cand._DIST2[None, :]
+        else:
+            d2 = (cand._DX[None, :] - offset[:, :1]) ** 2 + (cand._DY[None, :] - offset[:, 1:]) ** 2
+        weight = dark * (d2 <= reach2)
+        total = weight.sum(axis=1)
+        ok = total > 1e-6
+        new = (weight @ cand._DXY) / np.where(ok, total, 1.0)[:, None]
+        offset = np.where(ok[:, None], np.minimum(np.maximum(new, -2.0), 2.0), offset).astype(np.float32)
+    return offset, radius
+
+
 def test_blob_kernels_match_opencv_bit_for_bit() -> None:
     rng = np.random.default_rng(11)
     ws = cand._Workspace()
@@ -567,6 +600,29 @@ def test_measure_stats_match_numpy() -> None:
                     continue
                 assert g.dtype == e.dtype and g.shape == e.shape, name
                 np.testing.assert_array_equal(g, e, err_msg=name)
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_window_geometry_kernels_match_numpy(iterations: int) -> None:
+    """`ring_radius`, `centroid_weights`, `centroid_offset` (through `window_geometry`)
+    against the numpy chains, on noise, noisy discs and flat windows."""
+    rng = np.random.default_rng(iterations)
+    for trial in range(60):
+        n = int(rng.integers(0, 50))
+        if trial % 3 == 0:
+            w = rng.integers(0, 256, (n, 12, 12)).astype(np.uint8)
+        elif trial % 3 == 1:
+            yy, xx = np.mgrid[:12, :12] - 5.5 - rng.normal(0, 1, (2, 1, 1))
+            r = rng.uniform(0.5, 6.0, (n, 1, 1))
+            disc = np.where(np.hypot(yy, xx)[None] < r, 30.0, 200.0) + rng.normal(0, 8, (n, 12, 12))
+            w = np.clip(disc, 0, 255).astype(np.uint8)
+        else:
+            w = np.full((n, 12, 12), rng.integers(0, 256), np.uint8)
+        got = cand.window_geometry(w, iterations)
+        expected = _reference_window_geometry(w, iterations) if n else got
+        for g, e in zip(got, expected):
+            assert g.dtype == e.dtype and g.shape == e.shape
+            np.testing.assert_array_equal(g, e)
 
 
 def test_warm_up_compiles_what_the_detector_calls() -> None:

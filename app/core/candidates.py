@@ -534,22 +534,12 @@ def window_radius(windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     brightest ring beyond; the crossing is interpolated and scaled by `_RADIUS_GAIN`.
     """
     w = np.asarray(windows, dtype=np.float32).reshape(-1, _DIM)
-    n = w.shape[0]
-    prof = w @ _RINGS  # (N, 6)
-    dark = prof[:, :2].min(axis=1)
-    half = 0.5 * (dark + prof[:, 2:].max(axis=1))
-    below = prof < half[:, None]
-    first = np.where(below.all(axis=1), prof.shape[1], np.argmin(below, axis=1))
-    # (np.minimum/np.maximum rather than np.clip: the same values, a third of the
-    # Python overhead on these short arrays)
-    k = np.minimum(np.maximum(first, 1), prof.shape[1] - 1)
-    flat = prof.reshape(-1)
-    p1_index = np.arange(0, n * prof.shape[1], prof.shape[1]) + k
-    p0, p1 = flat[p1_index - 1], flat[p1_index]
-    step = np.where(np.abs(p1 - p0) > 1e-6, p1 - p0, np.float32(1e-6))
-    radius = _RING_MID[k - 1] + np.minimum(np.maximum((half - p0) / step, 0.0), 1.0)
-    radius = np.where(first == 0, 0.5, radius) * _RADIUS_GAIN
-    return radius.astype(np.float32), half.astype(np.float32)
+    prof = w @ _RINGS  # (N, 6): BLAS's float32 sums, as they were
+    # the rest per window in one compiled loop (`kernels.ring_radius`: the same float32
+    # steps as the numpy chain it replaced, without ~15 calls' overhead)
+    radius, half = np.empty(w.shape[0], np.float32), np.empty(w.shape[0], np.float32)
+    kernels.ring_radius(prof, _RING_MID, np.float32(_RADIUS_GAIN), radius, half)
+    return radius, half
 
 
 def window_centroid(windows: np.ndarray, radius: np.ndarray, half: np.ndarray, iterations: int = 2) -> np.ndarray:
@@ -557,22 +547,16 @@ def window_centroid(windows: np.ndarray, radius: np.ndarray, half: np.ndarray, i
     window's level: the centroid of darkness (`half` minus grey level, clipped at 0)
     inside a circular aperture of the disc radius plus a pixel, re-centred on the
     previous estimate `iterations - 1` times, so neighbours in the window barely pull."""
-    w = np.asarray(windows, dtype=np.float32).reshape(-1, _DIM)
-    dark = half[:, None] - w
-    np.maximum(dark, 0.0, out=dark)
-    reach2 = ((radius + 1.0) ** 2)[:, None]
+    w = np.ascontiguousarray(windows, dtype=np.float32).reshape(-1, _DIM)
+    half = np.ascontiguousarray(half, np.float32)
+    reach2 = (np.asarray(radius, np.float32) + np.float32(1.0)) ** 2
     offset = np.zeros((w.shape[0], 2), np.float32)
+    weight, total = np.empty_like(w), np.empty(w.shape[0], np.float32)
     for it in range(iterations):
-        if it == 0:
-            d2 = _DIST2[None, :]
-        else:
-            d2 = (_DX[None, :] - offset[:, :1]) ** 2 + (_DY[None, :] - offset[:, 1:]) ** 2
-        weight = dark * (d2 <= reach2)
-        total = weight.sum(axis=1)
-        ok = total > 1e-6
-        moments = weight @ _DXY  # (N, 2)
-        new = moments / np.where(ok, total, 1.0)[:, None]
-        offset = np.where(ok[:, None], np.minimum(np.maximum(new, -2.0), 2.0), offset).astype(np.float32)
+        # darkness in the aperture and its sum fused (`kernels.centroid_weights`); the
+        # moments stay a BLAS product, so its float32 sums are as they were
+        kernels.centroid_weights(w, half, reach2, _DX, _DY, _DIST2, offset, it == 0, weight, total)
+        kernels.centroid_offset(weight @ _DXY, total, offset)
     return offset
 
 

@@ -210,6 +210,83 @@ def screen_hidden(product: np.ndarray, sums: np.ndarray, sums_sq: np.ndarray, w1
 
 
 # --------------------------------------------------------------------------------------
+# Disc geometry in the window (app.core.candidates)
+# --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def ring_radius(prof: np.ndarray, ring_mid: np.ndarray, gain: np.float32, radius: np.ndarray, half: np.ndarray
+                ) -> None:
+    """`candidates.window_radius` after its ring product ``prof = w @ RINGS`` (n, R)
+    float32: per window the half level and the interpolated, scaled half-level
+    crossing, into `radius`, `half` (n,) float32; the ~15 numpy calls on short arrays it
+    replaces each cost more than this loop (same float32 steps)."""
+    nr = prof.shape[1]
+    lo = np.float32(1e-6)
+    for i in range(prof.shape[0]):
+        p = prof[i]
+        dark = p[0] if p[0] <= p[1] or p[0] != p[0] else p[1]
+        top = p[2]
+        for j in range(3, nr):
+            top = top if top >= p[j] or top != top else p[j]
+        h = np.float32(0.5) * (dark + top)
+        first = nr
+        for j in range(nr):
+            if not p[j] < h:
+                first = j
+                break
+        k = min(max(first, 1), nr - 1)
+        p0, p1 = p[k - 1], p[k]
+        step = p1 - p0 if abs(p1 - p0) > lo else lo
+        t = (h - p0) / step
+        t = t if not t < 0 else np.float32(0.0)  # np.maximum / np.minimum: NaN stays NaN
+        t = t if not t > 1 else np.float32(1.0)
+        r = ring_mid[k - 1] + t
+        if first == 0:
+            r = np.float32(0.5)
+        radius[i] = r * gain
+        half[i] = h
+
+
+@njit(**_JIT)
+def centroid_weights(w: np.ndarray, half: np.ndarray, reach2: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                     dist2: np.ndarray, offset: np.ndarray, first: bool, weight: np.ndarray, total: np.ndarray
+                     ) -> None:
+    """One pass of `candidates.window_centroid` up to its moment product: `weight` (n,
+    144) = darkness ``max(half - w, 0)`` inside the aperture ``d2 <= reach2`` about the
+    offset (d2 = `dist2` on the `first` pass), else 0, and `total` (n,) its numpy
+    pairwise row sum (five array passes in one)."""
+    for i in range(w.shape[0]):
+        hi, r2 = half[i], reach2[i]
+        ox, oy = offset[i, 0], offset[i, 1]
+        row = weight[i]
+        for j in range(w.shape[1]):
+            d = hi - w[i, j]
+            d = d if not d < 0 else np.float32(0.0)
+            if first:
+                d2 = dist2[j]
+            else:
+                ex, ey = dx[j] - ox, dy[j] - oy
+                d2 = ex * ex + ey * ey
+            row[j] = d if d2 <= r2 else np.float32(0.0) * d
+        total[i] = np.float32(0.0) + pairwise_sum(row, 0, row.shape[0])
+
+
+@njit(**_JIT)
+def centroid_offset(moments: np.ndarray, total: np.ndarray, offset: np.ndarray) -> None:
+    """The end of one `candidates.window_centroid` pass, in place: where the weight is
+    > 1e-6 the offset becomes the moments over it, clipped to +-2 px."""
+    for i in range(total.shape[0]):
+        t = total[i]
+        if t > np.float32(1e-6):
+            for c in range(2):
+                v = moments[i, c] / t
+                v = v if not v < -2 else np.float32(-2.0)
+                v = v if not v > 2 else np.float32(2.0)
+                offset[i, c] = v
+
+
+# --------------------------------------------------------------------------------------
 # Non-maximum suppression (app.core.candidates)
 # --------------------------------------------------------------------------------------
 
@@ -811,6 +888,14 @@ def warm_up() -> None:
     for measure in (True, False):
         centroid_step(img, centroid, jac, 1.2, 0.125, np.array([1.3, 2.0], np.float32), np.float32(0.25),
                       np.float32(10.0), np.zeros(1), measure, new, total, contrast)
+    prof = np.ones((2, 6), np.float32)
+    radius, half = np.empty(2, np.float32), np.empty(2, np.float32)
+    ring_radius(prof, prof[0], np.float32(1.0), radius, half)
+    windows, offset = np.ones((2, 144), np.float32), np.zeros((2, 2), np.float32)
+    grid = windows[0]
+    for first_pass in (True, False):
+        centroid_weights(windows, half, radius, grid, grid, grid, offset, first_pass, windows.copy(), radius.copy())
+    centroid_offset(offset.copy(), radius, offset)
     bias = np.ones(3, np.float32)
     bias.setflags(write=False)  # as the classifier's arrays are: numba types read-only arrays apart
     screen_hidden(np.ones((2, 4), np.float32)[:, :3], sums, sums_sq, np.ones(3, np.float32), bias, np.float32(1e-3))
