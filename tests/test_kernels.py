@@ -625,6 +625,54 @@ def test_window_geometry_kernels_match_numpy(iterations: int) -> None:
             np.testing.assert_array_equal(g, e)
 
 
+def _reference_jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
+    w = x[..., 2, None, None]  # (P, K, 1, 1)
+    return (hs[:, None, :2, :2] - x[..., :2, None] / w * hs[:, None, None, 2, :2]) / w
+
+
+def _reference_ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    gh = hs[:, None, 2, :2]  # (P, 1, 2)
+    w = gh[..., 0] * centres[None, :, 0] + gh[..., 1] * centres[None, :, 1] + hs[:, 2, 2, None]  # (P, K)
+    w = np.where(np.abs(w) > 1e-12, w, 1e-12)
+    k = (radius * radius) / w
+    p = centres[None] - k[..., None] * gh  # (P, K, 2) the poles on the card
+    x = hs[:, None, :, 0] * p[..., 0, None] + hs[:, None, :, 1] * p[..., 1, None] + hs[:, None, :, 2]  # (P, K, 3)
+    z = x[..., 2:]
+    z = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    return x[..., :2] / z
+
+
+def test_homography_point_kernels_match_numpy() -> None:
+    """`jacobians` and `ellipse_centres` (through `targets._jacobians`,
+    `targets._ellipse_centres`) against the numpy broadcasts, on the homographies of
+    random quadrilaterals, degenerate ones and non-finite entries included."""
+    from app.core.markers import DISC_CENTRES, DISC_RADIUS
+
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        p = int(rng.integers(0, 12))
+        quads = rng.uniform(0, 640, (p, 4, 2))
+        if trial % 4 == 1 and p:
+            quads[0] = quads[0, :1]  # all four corners at one point
+        hs = tg.homographies(quads)
+        if trial % 4 == 2 and p:
+            hs[0, 2, :2] = 0.0
+            hs[0, 2, 2] = 0.0
+        if trial % 4 == 3 and p:
+            hs[-1, 1, 1] = np.nan
+        pts = rng.uniform(-1, 2, (int(rng.integers(1, 6)), 2))
+        with np.errstate(all="ignore"):
+            for card in (pts, DISC_CENTRES):
+                got, expected = tg._jacobians(hs, card), _reference_jacobians(hs, card)
+                assert got.shape == expected.shape
+                np.testing.assert_array_equal(got, expected)
+                got = tg._ellipse_centres(hs, card, DISC_RADIUS)
+                expected = _reference_ellipse_centres(hs, card, DISC_RADIUS)
+                assert got.shape == expected.shape
+                np.testing.assert_array_equal(got, expected)
+
+
 def test_warm_up_compiles_what_the_detector_calls() -> None:
     """After `warm_up` a detection compiles nothing more (its argument types, read-only
     and non-contiguous arrays included, were all seen)."""

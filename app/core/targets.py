@@ -237,15 +237,10 @@ def _ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.n
     infinity; pulled back to the card, that line is the homography's third row
     (g, h, 1), and the pole of it with respect to the circle is the card point
     ``c - radius**2 (g, h) / (g cx + h cy + 1)``: its image is the ellipse centre."""
-    gh = hs[:, None, 2, :2]  # (P, 1, 2)
-    w = gh[..., 0] * centres[None, :, 0] + gh[..., 1] * centres[None, :, 1] + hs[:, 2, 2, None]  # (P, K)
-    w = np.where(np.abs(w) > 1e-12, w, 1e-12)
-    k = (radius * radius) / w
-    p = centres[None] - k[..., None] * gh  # (P, K, 2) the poles on the card
-    x = hs[:, None, :, 0] * p[..., 0, None] + hs[:, None, :, 1] * p[..., 1, None] + hs[:, None, :, 2]  # (P, K, 3)
-    z = x[..., 2:]
-    z = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    return x[..., :2] / z
+    # (one compiled loop, `kernels.ellipse_centres`: the numpy arithmetic of
+    # tests/test_kernels.py's reference, operation for operation)
+    return kernels.ellipse_centres(np.ascontiguousarray(hs, np.float64), np.ascontiguousarray(centres, np.float64),
+                                   float(radius))
 
 
 def _perspective_bias(hs: np.ndarray) -> np.ndarray:
@@ -1167,10 +1162,9 @@ def _masked_median_u8(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """(P, K, 2, 2) Jacobians d(image)/d(card) of each homography at card points (K, 2)."""
-    x = hs[:, None, :, 0] * pts[None, :, 0, None] + hs[:, None, :, 1] * pts[None, :, 1, None] + hs[:, None, :, 2]
-    w = x[..., 2, None, None]  # (P, K, 1, 1)
-    # row r: (H[r, :2] - image[r] * H[2, :2]) / w, image[r] = x[r] / w
-    return (hs[:, None, :2, :2] - x[..., :2, None] / w * hs[:, None, None, 2, :2]) / w
+    # row r: (H[r, :2] - image[r] * H[2, :2]) / w, image[r] = x[r] / w, x = H (p, 1); one
+    # compiled loop (`kernels.jacobians`, the numpy arithmetic operation for operation)
+    return kernels.jacobians(np.ascontiguousarray(hs, np.float64), np.ascontiguousarray(pts, np.float64))
 
 
 # --------------------------------------------------------------------------------------
