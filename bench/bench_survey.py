@@ -17,6 +17,7 @@ the summary pools the tracking frames of all seeds. Targets from the issue: foca
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -94,11 +95,14 @@ class RoomResult:
 
 
 def run_room(seed: int, n_frames: int, n_tracking: int, card_prior_mm: float,
-             detector: Detector, ideal_px: float | None = None) -> RoomResult:
+             detector: Detector, survey_detector: Detector, ideal_px: float | None = None) -> RoomResult:
+    """`survey_detector` runs on the calibration walk (as the survey job's, with fitted
+    disc centres), `detector` on the tracking walk (as /track's)."""
     rng = np.random.default_rng(seed)
     scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
     walk = camera_walk(rng, scene.room_size, n_frames, kind="calibration")
-    frames, _, detect_s = _detect_walk(detector, scene, walk, rng, f"seed {seed}: calibration walk", ideal_px)
+    frames, _, detect_s = _detect_walk(survey_detector, scene, walk, rng, f"seed {seed}: calibration walk",
+                                       ideal_px)
 
     start = time.perf_counter()
     prior = card_prior_mm / 1000 if card_prior_mm > 0 else None
@@ -198,6 +202,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="120 + 60 frames, one room")
     parser.add_argument("--details", action="store_true", help="the full table of every room")
     parser.add_argument("--card-prior-mm", type=float, default=1.0, help="0: no card-size prior in BA")
+    parser.add_argument("--centroids", action="store_true",
+                        help="survey on the detector's centroids, as /track sees them, instead of fitted disc "
+                             "centres (Detector.fit_discs, what the survey job uses)")
     parser.add_argument("--ideal-px", type=float, default=None,
                         help="an ideal detector instead of rendering + detection: true disc projections "
                              "plus independent Gaussian noise of this many px (the real one's error is 0.023)")
@@ -207,13 +214,16 @@ def main() -> None:
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()  # the detector's compiled kernels: not part of the first frame's time
-    rooms = [run_room(seed, args.frames, args.tracking_frames, args.card_prior_mm, detector, args.ideal_px)
+    survey_detector = detector if args.centroids else dataclasses.replace(detector, fit_discs=True)
+    rooms = [run_room(seed, args.frames, args.tracking_frames, args.card_prior_mm, detector, survey_detector,
+                      args.ideal_px)
              for seed in tqdm(args.seeds, desc="rooms", unit="room")]
 
     print(f"\nSurvey bench: room 8x6x3 m, 30 cards of 0.2 m, 640x480, f 820 px, k1 -0.12, "
           f"{args.frames}-frame calibration walk, {args.tracking_frames}-frame tracking walk, "
           f"card prior {args.card_prior_mm} mm, "
-          + ("the real detector on rendered frames" if args.ideal_px is None
+          + (f"the real detector on rendered frames ({'centroids' if args.centroids else 'fitted disc centres'} "
+             "in the survey, centroids in tracking)" if args.ideal_px is None
              else f"an ideal detector: truth + {args.ideal_px} px Gaussian noise") + "\n")
     print("| seed | focal error | principal point (px) | disc RMS (mm) | survey + detection (s) "
           "| tracking median, true / surveyed map (mm) | ratio: median | ratio: RMS |")

@@ -137,6 +137,25 @@ def test_distorted_disc_centroid(centre: list) -> None:
         assert _err(cents, cam.project(_disc_centres(q))).max() < 0.1
 
 
+def test_small_distorted_discs_keep_their_centroids() -> None:
+    """Distortion is applied before the box filter (each pixel integrates the distorted
+    image): remapping the box-filtered image instead blurs by a sub-pixel phase that
+    varies over the frame, and moved the centroids of 3-5 px discs by 0.013 px RMS
+    (0.027 max) on these cards, as much as the detector's own error (now 0.006 / 0.013,
+    mostly this window centroid's own error on small discs)."""
+    cam = Camera.pinhole(800.0, 640, 480, dist=DIST)
+    rng = np.random.default_rng(1)
+    errs = []
+    for _ in range(12):
+        z = rng.uniform(4.0, 6.0)
+        q = _card([rng.uniform(-0.3, 0.3) * z, rng.uniform(-0.2, 0.2) * z, z])
+        wall = TexturedQuad.from_frame([-40, -40, z + 1], [80, 0, 0], [0, 80, 0], np.full((8, 8), 0.8))
+        img = render(cam, Pose.identity(), [wall, q], supersample=2)
+        errs.append(_err(_centroids(img, cam, q), _area_centroids(cam, q)))
+    rms = float(np.sqrt(np.mean(np.square(errs))))
+    assert rms < 0.009, rms
+
+
 def test_texture_mapping_is_exact_at_one_texel_per_pixel() -> None:
     """Texel (i, j) centre = texture units ((j + .5)/w, (i + .5)/h); mapped 1:1 onto
     pixel centres the rendered image reproduces the texture."""

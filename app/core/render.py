@@ -22,10 +22,14 @@ Pipeline (per frame):
    with a zero border: the bilinear ramp puts the 50 % level exactly on the quad's edge.
    The mask's resolution is chosen so its texels are about one canvas pixel where the
    quad is closest. Compositing is ``canvas += coverage * (layer - canvas)``.
-5. The canvas is box-filtered down by `supersample` (INTER_AREA: ideal pixel
-   ``x = (x_ss - (s - 1) / 2) / s``) and, for a camera with lens distortion, remapped
-   with `Camera.ideal_canvas`'s maps (bilinear), which apply OpenCV's distortion model
-   to the whole frame. The ideal canvas is larger than the image for barrel distortion.
+5. For a camera with lens distortion the supersampled canvas is remapped (bilinear)
+   to the distorted image's sub-pixel samples, applying OpenCV's distortion model to
+   the whole frame (the ideal canvas, `Camera.ideal_canvas`, is larger than the image
+   for barrel distortion). Then it is box-filtered down by `supersample` (INTER_AREA:
+   pixel ``x = (x_ss - (s - 1) / 2) / s``): each pixel integrates the distorted image
+   over its area. (Distorting after the box filter would resample pixel values at a
+   sub-pixel phase that varies over the frame, a blur varying across a small disc that
+   moves its centroid by ~0.01 px.)
 
 Texture mapping: texture corners (0, 0), (1, 0), (1, 1), (0, 1) in texture units are the
 quad's corners 0..3 (top-left, top-right, bottom-right, bottom-left of the image), and
@@ -48,6 +52,7 @@ Pure numpy/OpenCV; no I/O.
 
 from __future__ import annotations
 
+import functools
 import heapq
 import math
 from collections.abc import Callable, Sequence
@@ -436,14 +441,45 @@ def render(
     for k in _paint_order([q for _, _, q, _ in todo], [d for d, _, _, _ in todo]):
         _draw_quad(canvas, P, todo[k][2], todo[k][3], near)
 
-    img = canvas if s == 1 else cv2.resize(canvas, (cw, ch), interpolation=cv2.INTER_AREA)
     if distorted:
-        img = cv2.remap(
-            img, ic.map_x, ic.map_y, cv2.INTER_LINEAR,
+        # Distort before the box filter (see the module docstring, step 5).
+        map_x, map_y = _supersampled_maps(camera, s)
+        canvas = cv2.remap(
+            canvas, map_x, map_y, cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT, borderValue=float(background),
         )
+    w, h = camera.width, camera.height
+    img = canvas if s == 1 else cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA)
     np.clip(img, 0.0, 1.0, out=img)
     return img
+
+
+def _supersampled_maps(camera: Camera, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps (float32, (height * s, width * s)) from the distorted image's
+    sub-pixel samples (pixel x's samples at x + (i - (s - 1) / 2) / s) into the
+    supersampled ideal canvas of `Camera.ideal_canvas` (ideal pixel x at canvas column
+    s (x - x0) + (s - 1) / 2). For s == 1, the camera's own maps."""
+    ic = camera.ideal_canvas
+    if s == 1:
+        return ic.map_x, ic.map_y
+    return _supersampled_maps_of(camera._key(), s, ic.x0, ic.y0)
+
+
+@functools.lru_cache(maxsize=8)
+def _supersampled_maps_of(key: tuple[bytes, bytes, int, int], s: int, x0: int, y0: int
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    K, dist, w, h = key
+    camera = Camera(np.frombuffer(K).reshape(3, 3), np.frombuffer(dist), w, h)
+    sub = (np.arange(s, dtype=np.float64) - (s - 1) / 2.0) / s
+    us = (np.arange(w, dtype=np.float64)[:, None] + sub[None, :]).ravel()
+    vs = (np.arange(h, dtype=np.float64)[:, None] + sub[None, :]).ravel()
+    uu, vv = np.meshgrid(us, vs)
+    ideal = camera.undistort_pixels(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    map_x = (s * (ideal[:, 0] - x0) + (s - 1) / 2.0).reshape(h * s, w * s).astype(np.float32)
+    map_y = (s * (ideal[:, 1] - y0) + (s - 1) / 2.0).reshape(h * s, w * s).astype(np.float32)
+    map_x.setflags(write=False)
+    map_y.setflags(write=False)
+    return map_x, map_y
 
 
 def visible_points(

@@ -235,7 +235,10 @@ def run_survey_job(context: Any) -> dict[str, Any]:
 
     params = context.params
     with context.sessions() as session:
-        detector = Detector(classifiers.load(session, int(params["classifier_id"])), str(params["family"]))
+        # Fitted disc centres: the survey averages many views of each disc, and the
+        # centroid's small errors repeat from view to view (see app.core.disc_fit).
+        detector = Detector(classifiers.load(session, int(params["classifier_id"])), str(params["family"]),
+                            fit_discs=True)
     detections = []
     context.progress("detecting targets", 0.0)
     for position, count, gray in read_frames(params):
