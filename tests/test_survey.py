@@ -16,8 +16,15 @@ from app.core.alignment import (
 )
 from app.core.camera import Camera, Pose
 from app.core.scenes import Scene, TargetTruth, camera_walk, frame_truth, render_walk, room_scene
-from app.core.survey import SurveyError, SurveyResult, focal_from_cards, lens_from_cards, survey
-from app.core.targets import DetectedTarget
+from app.core.survey import (
+    SurveyError,
+    SurveyResult,
+    disc_precision,
+    focal_from_cards,
+    lens_from_cards,
+    survey,
+)
+from app.core.targets import DetectedTarget, disc_axes
 
 ROOM = (4.0, 3.0, 2.5)
 CAMERA = Camera(np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]),
@@ -355,3 +362,18 @@ def test_target_origin_alignment() -> None:
     doc = sim.apply_map_document(scene.map_document(CAMERA))
     assert doc["frame"] == "world"
     np.testing.assert_allclose(np.asarray(doc["targets"][3]["discs"])[:, 2], 0.0, atol=1e-3)
+
+
+def test_thin_discs_weigh_less_in_the_bundle_adjustment() -> None:
+    """A card seen face-on with discs of 3 px radius, and the same card foreshortened
+    to a third across: its discs' minor semi-axes are 1 px, their centres are measured
+    worse, and the bundle adjustment weighs them less."""
+    side = 0.6 * 3.0 / 0.125  # disc spacing for a 3 px disc radius
+    face = np.array([[[0, 0], [side, 0], [side, side], [0, side]]], float) + 100.0
+    thin = face.copy()
+    thin[..., 0] = 100.0 + (face[..., 0] - 100.0) / 3.0
+    np.testing.assert_allclose(disc_axes(face)[0], 3.0, atol=1e-9)
+    np.testing.assert_allclose(disc_axes(thin)[0], [[3.0, 1.0]] * 4, atol=1e-9)
+    w_face, w_thin = disc_precision(face)[0], disc_precision(thin)[0]
+    assert np.allclose(w_face, w_face[0]) and np.allclose(w_thin, w_thin[0])
+    assert w_thin[0] < 0.25 * w_face[0]

@@ -243,6 +243,14 @@ def _ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.n
                                    float(radius))
 
 
+def disc_axes(discs: np.ndarray) -> np.ndarray:
+    """Semi-axes (T, 4, 2) in pixels, major then minor, of the image ellipses of the
+    discs of cards `discs` (T, 4, 2) (printed order), to first order: the singular
+    values of the card homography's Jacobian at each disc times the disc radius."""
+    jac = _jacobians(homographies(np.asarray(discs, np.float64).reshape(-1, 4, 2)), DISC_CENTRES)
+    return np.linalg.svd(jac, compute_uv=False) * DISC_RADIUS
+
+
 def _perspective_bias(hs: np.ndarray) -> np.ndarray:
     """(P, 4, 2) image-ellipse centre minus the image of the centre, of each disc."""
     return _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - _apply(hs, _DISC_CENTRES_H)
