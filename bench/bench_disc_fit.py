@@ -1,0 +1,96 @@
+"""Disc centres on the survey bench's room walks: the detector's centroids (what /track
+uses) against the fitted centres (`app.core.disc_fit`, what the survey uses), on the same
+detections, against the renderer's truth.
+
+Frames: every 10th pose of the 1000-frame calibration walks of bench_survey's rooms
+(`--seeds`), rendered with default degradations (sampled afresh: not bench_survey's
+frames, the same rooms and places). Prints the error (px per axis, RMS) by the minor
+semi-axis of the disc's image, the error of each card's mean (the common shift of its
+four discs, which a survey cannot average away within a view), the tails, and the time.
+
+Run: ``.venv/bin/python bench/bench_disc_fit.py [--seeds 0 1] [--step 10]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for bench.bench_survey
+
+from app.core.candidates import load_default_classifier
+from app.core.detector import Detector
+from app.core.disc_fit import fit_disc_centres
+from app.core.kernels import warm_up
+from app.core.scenes import camera_walk, render_walk, room_scene
+from app.core.targets import disc_axes, homographies
+from bench.bench_survey import TRUE_CAMERA
+
+BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--step", type=int, default=10, help="every step-th frame of the 1000-frame walk")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    detector = Detector(load_default_classifier())
+    warm_up()
+    centroid, fitted, minor, was_fitted = [], [], [], []
+    fit_s, n_frames = 0.0, 0
+    for seed in args.seeds:
+        rng = np.random.default_rng(seed)  # bench_survey's room, walk and rendering
+        scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
+        walk = camera_walk(rng, scene.room_size, 1000, kind="calibration")[:: args.step]
+        for image, truth in tqdm(render_walk(scene, TRUE_CAMERA, walk, rng), total=len(walk),
+                                 desc=f"room {seed}", unit="frame"):
+            n_frames += 1
+            by_id = {t.id: t for t in truth.targets}
+            found = [t for t in detector.detect(image).targets if t.id in by_id]
+            if not found:
+                continue
+            discs = np.array([t.discs for t in found])
+            start = time.perf_counter()
+            fit = fit_disc_centres(image, discs, homographies(discs))
+            fit_s += time.perf_counter() - start
+            true = np.array([by_id[t.id].discs_px for t in found])
+            centroid.append(discs - true)
+            fitted.append(fit.centres - true)
+            minor.append(disc_axes(discs)[..., 1])
+            was_fitted.append(fit.fitted)
+    c, f = np.concatenate(centroid), np.concatenate(fitted)
+    b, ok = np.concatenate(minor).ravel(), np.concatenate(was_fitted).ravel()
+    ce, fe = c.reshape(-1, 2), f.reshape(-1, 2)
+
+    def rms(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+    print(f"\nDisc centres, rooms {args.seeds}, every {args.step}th frame of the 1000-frame calibration walks "
+          f"({n_frames} frames, {len(c)} card views, {ce.shape[0]} discs, {100 * ok.mean():.1f}% fitted), "
+          "default degradations, error against the renderer's truth (px per axis, RMS)\n")
+    print("| discs | n | centroid (/track) | fitted (survey) | ratio fitted / centroid |")
+    print("|---|---|---|---|---|")
+    for lo, hi in zip(BINS[:-1], BINS[1:], strict=True):
+        m = (b >= lo) & (b < hi)
+        if m.sum():
+            label = f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px"
+            print(f"| {label} | {m.sum()} | {rms(ce[m]):.4f} | {rms(fe[m]):.4f} | {rms(fe[m]) / rms(ce[m]):.2f} |")
+    print(f"| all | {len(b)} | {rms(ce):.4f} | {rms(fe):.4f} | {rms(fe) / rms(ce):.2f} |")
+    cm, fm = c.mean(axis=1), f.mean(axis=1)
+    print(f"| card's mean of its four discs | {len(c)} | {rms(cm):.4f} | {rms(fm):.4f} | {rms(fm) / rms(cm):.2f} |")
+    cn, fn = np.hypot(*ce.T), np.hypot(*fe.T)
+    for q in (0.9, 0.99):
+        print(f"| 2-D error, {round(100 * q)}th percentile | {len(cn)} | {np.quantile(cn, q):.4f} "
+              f"| {np.quantile(fn, q):.4f} | {np.quantile(fn, q) / np.quantile(cn, q):.2f} |")
+    print(f"\nfit time: {1000 * fit_s / n_frames:.1f} ms per frame ({1000 * fit_s / max(len(c), 1):.2f} ms per card)")
+
+
+if __name__ == "__main__":
+    main()
