@@ -75,17 +75,23 @@ def main() -> None:
     print(f"\nDisc centres, rooms {args.seeds}, every {args.step}th frame of the 1000-frame calibration walks "
           f"({n_frames} frames, {len(c)} card views, {ce.shape[0]} discs, {100 * ok.mean():.1f}% fitted), "
           "default degradations, error against the renderer's truth (px per axis, RMS)\n")
-    print("| discs | n | centroid (/track) | fitted (survey) | ratio fitted / centroid |")
+    cn, fn = np.hypot(*ce.T), np.hypot(*fe.T)
+    print("| discs | n | centroid (/track): RMS / median 2-D | fitted (survey): RMS / median 2-D "
+          "| ratio fitted / centroid: RMS / median |")
     print("|---|---|---|---|---|")
+
+    def row(label: str, m: np.ndarray) -> None:
+        c_rms, f_rms, c_med, f_med = rms(ce[m]), rms(fe[m]), np.median(cn[m]), np.median(fn[m])
+        print(f"| {label} | {m.sum()} | {c_rms:.4f} / {c_med:.4f} | {f_rms:.4f} / {f_med:.4f} "
+              f"| {f_rms / c_rms:.2f} / {f_med / c_med:.2f} |")
+
     for lo, hi in zip(BINS[:-1], BINS[1:], strict=True):
         m = (b >= lo) & (b < hi)
         if m.sum():
-            label = f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px"
-            print(f"| {label} | {m.sum()} | {rms(ce[m]):.4f} | {rms(fe[m]):.4f} | {rms(fe[m]) / rms(ce[m]):.2f} |")
-    print(f"| all | {len(b)} | {rms(ce):.4f} | {rms(fe):.4f} | {rms(fe) / rms(ce):.2f} |")
+            row(f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px", m)
+    row("all", np.ones(len(b), bool))
     cm, fm = c.mean(axis=1), f.mean(axis=1)
-    print(f"| card's mean of its four discs | {len(c)} | {rms(cm):.4f} | {rms(fm):.4f} | {rms(fm) / rms(cm):.2f} |")
-    cn, fn = np.hypot(*ce.T), np.hypot(*fe.T)
+    print(f"| card's mean of its four discs (RMS) | {len(c)} | {rms(cm):.4f} | {rms(fm):.4f} | {rms(fm) / rms(cm):.2f} |")
     for q in (0.9, 0.99):
         print(f"| 2-D error, {round(100 * q)}th percentile | {len(cn)} | {np.quantile(cn, q):.4f} "
               f"| {np.quantile(fn, q):.4f} | {np.quantile(fn, q) / np.quantile(cn, q):.2f} |")
