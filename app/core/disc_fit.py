@@ -44,6 +44,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS
+from app.core.targets import apply_homographies
 
 #: Discs whose image ellipse has a semi-major axis above this (px) keep the centroid:
 #: there it is already within ~0.001 px, and the fit's patch would be large.
@@ -104,13 +105,6 @@ def _image_lines(hinv: np.ndarray, lines_card: np.ndarray, inside: np.ndarray) -
     return line * np.where(side > 0, -1.0, 1.0)[:, None]
 
 
-def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Points (D, K, 2) through homographies (D, 3, 3)."""
-    x = pts @ hs[:, :2, :2].transpose(0, 2, 1) + hs[:, None, :2, 2]
-    w = pts @ hs[:, 2, :2][..., None] + hs[:, None, 2, 2:3]
-    return x / w
-
-
 def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarray,
                      max_radius_px: float = FIT_MAX_RADIUS_PX) -> DiscFit:
     """Fit the disc centres of cards in the greyscale image `gray`: `discs` (T, 4, 2)
@@ -124,7 +118,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     out = DiscFit(centres, fitted, blur, rms)
     if t == 0:
         return out
-    hs = np.repeat(np.asarray(homographies, np.float64).reshape(t, 3, 3), 4, axis=0)  # (D, 3, 3)
+    card_hs = np.asarray(homographies, np.float64).reshape(t, 3, 3)
+    hs = np.repeat(card_hs, 4, axis=0)  # (D, 3, 3)
     with np.errstate(all="ignore"):
         hinv = np.linalg.inv(hs)
     card_centre = np.tile(DISC_CENTRES, (t, 1))  # (D, 2)
@@ -134,7 +129,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     ok &= semi_major <= max_radius_px
     # The patch: the image of the disc's corner of the card, out to its edges.
     span = np.array([[-0.2, -0.2], [0.2, -0.2], [0.2, 0.2], [-0.2, 0.2]])
-    corners = _apply(hs, card_centre[:, None, :] + span[None] * sign[:, None, :])
+    corner_pts = (DISC_CENTRES[:, None, :] + span[None] * np.where(DISC_CENTRES < 0.5, -1.0, 1.0)[:, None, :])
+    corners = apply_homographies(card_hs, corner_pts.reshape(-1, 2)).reshape(t * 4, 4, 2)
     h, w = img.shape
     lo = np.floor(corners.min(axis=1) - BEYOND_EDGE_PX - 1.0)
     hi = np.ceil(corners.max(axis=1) + BEYOND_EDGE_PX + 1.0)
@@ -162,7 +158,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     edge_v = np.where(sg[:, 1] < 0, 0.0, 1.0)
     line_u = _image_lines(hinv_r, np.stack([one, zero, -edge_u], axis=1), mr)
     line_v = _image_lines(hinv_r, np.stack([zero, one, -edge_v], axis=1), mr)
-    code_mid = _apply(hs_r, np.full((n, 1, 2), CODE_ORIGIN + CODE_SIZE / 2))[:, 0]
+    code_mid = np.repeat(apply_homographies(card_hs, np.full((1, 2), CODE_ORIGIN + CODE_SIZE / 2))[:, 0], 4,
+                         axis=0)[rows]
     code_u = np.where(sg[:, 0] < 0, CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE)
     code_v = np.where(sg[:, 1] < 0, CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE)
     cline_u = -_image_lines(hinv_r, np.stack([one, zero, -code_u], axis=1), code_mid)  # + toward the code
@@ -283,7 +280,7 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
 
     good = ((np.hypot(theta[:, 0], theta[:, 1]) < MAX_SHIFT_PX) & (theta[:, 3] > 0) & (count >= MIN_PIXELS)
             & np.isfinite(theta).all(axis=1))
-    projected = _apply(hs_r, cc[:, None, :])[:, 0]
+    projected = apply_homographies(card_hs, DISC_CENTRES).reshape(-1, 2)[rows]
     new = projected + theta[:, :2]
     # Not trusted either: a result far from the detector's centre.
     good &= np.hypot(*(new - cur.reshape(-1, 2)[rows]).T) < MAX_SHIFT_PX

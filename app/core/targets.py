@@ -222,7 +222,7 @@ def _homogeneous(pts: np.ndarray) -> np.ndarray:
 _DISC_CENTRES_H = _homogeneous(DISC_CENTRES)
 
 
-def _apply(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def apply_homographies(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Map card points `pts` (M, 2), or (M, 3) homogeneous, through every homography
     (P, 3, 3) -> (P, M, 2)."""
     x = np.matmul(pts if pts.shape[1] == 3 else _homogeneous(pts), hs.transpose(0, 2, 1))
@@ -253,7 +253,7 @@ def disc_axes(discs: np.ndarray) -> np.ndarray:
 
 def _perspective_bias(hs: np.ndarray) -> np.ndarray:
     """(P, 4, 2) image-ellipse centre minus the image of the centre, of each disc."""
-    return _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - _apply(hs, _DISC_CENTRES_H)
+    return _ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - apply_homographies(hs, _DISC_CENTRES_H)
 
 
 # --------------------------------------------------------------------------------------
@@ -616,7 +616,7 @@ def _sample(pyr: _Pyramid, hs: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray,
     p, m = hs.shape[0], pts.shape[0]
     if p == 0:
         return np.zeros((0, m), np.float32), np.zeros((0, m), bool)
-    xy = _apply(hs, pts)  # (P, M, 2) full-resolution pixels
+    xy = apply_homographies(hs, pts)  # (P, M, 2) full-resolution pixels
     h, w = pyr.levels[0].shape
     # card side in pixels: sqrt(|det J|) at the card centre, det J = det H / w**3
     wc = 0.5 * (hs[:, 2, 0] + hs[:, 2, 1]) + hs[:, 2, 2]
@@ -1584,7 +1584,7 @@ def simulate_candidates(
         if card_corners:
             extra.append(np.array([[0.03, 0.03], [0.97, 0.03], [0.97, 0.97], [0.03, 0.97]]))
         if extra:
-            p = _apply(hs, np.concatenate(extra))[0]
+            p = apply_homographies(hs, np.concatenate(extra))[0]
             for u, v in p:
                 rows.append([u, v, r * 0.45 * rng.uniform(*radius_factor), rng.uniform(0.0, 0.8)])
     h, w = gray.shape[:2]
