@@ -12,9 +12,12 @@ Here each such disc is fitted instead. The pixels of the disc's corner of the ca
 disc, the white around it, the card's two nearby edges and half a pixel beyond them; the
 code area and a margin around it are left out) are modelled as
 
-    I(p) = G + card(p) * (A - G - B * ink(p))
+    I(p) = G + (A - G) * card(p) - B * ink(p)
 
-with ``ink = Phi(-d / s)`` and ``card = Phi(-(d_u - e_u) / s) * Phi(-(d_v - e_v) / s)``:
+(the blurred image of the printed card: blurring is linear, and the disc lies inside
+the card, so the blurred disc is subtracted as it is; multiplying it by the blurred
+card, as an earlier version did, took ink away near the card's edge and moved thin
+discs outward by up to ~8 mpx under a blur of 0.6 px) with ``ink = Phi(-d / s)`` and ``card = Phi(-(d_u - e_u) / s) * Phi(-(d_v - e_v) / s)``:
 
 - d: the signed distance (pixels, first order) to the disc's image ellipse. Its shape
   and the offset of its centre from the projected disc centre come from the card's
@@ -58,6 +61,14 @@ ITERATIONS = 8
 #: A fit that moves a centre further than this (px) from the detector's is not trusted.
 MAX_SHIFT_PX = 0.5
 MIN_PIXELS = 12
+#: How far the patch reaches from the disc's centre toward the card's middle (card
+#: units; its edges are 0.175 away on the other side). The blurred disc's inner tail
+#: must be in it: at 0.2 discs of 2-3 px (minor semi-axis) under a blur of 0.8 px came
+#: out 6 mpx too far inward, at 0.25 2 mpx (single cards rendered at supersample 4).
+PATCH_INNER = 0.25
+#: ... and toward its two nearby edges: past them (0.175), the edges' pixels being
+#: limited by BEYOND_EDGE_PX.
+PATCH_OUTER = 0.2
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
@@ -128,7 +139,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     semi_major = 1.0 / np.sqrt(np.maximum(np.linalg.eigvalsh(np.where(ok[:, None, None], q, np.eye(2)))[:, 0], 1e-12))
     ok &= semi_major <= max_radius_px
     # The patch: the image of the disc's corner of the card, out to its edges.
-    span = np.array([[-0.2, -0.2], [0.2, -0.2], [0.2, 0.2], [-0.2, 0.2]])
+    span = np.array([[-PATCH_INNER, -PATCH_INNER], [PATCH_OUTER, -PATCH_INNER], [PATCH_OUTER, PATCH_OUTER],
+                     [-PATCH_INNER, PATCH_OUTER]])  # (outward, outward) from the disc's centre
     corner_pts = (DISC_CENTRES[:, None, :] + span[None] * np.where(DISC_CENTRES < 0.5, -1.0, 1.0)[:, None, :])
     corners = apply_homographies(card_hs, corner_pts.reshape(-1, 2)).reshape(t * 4, 4, 2)
     h, w = img.shape
@@ -176,7 +188,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
           - cc[:, 0, None]) * sg[:, 0, None]
     ov = ((hinv_r[:, 1, 0, None] * pxf + hinv_r[:, 1, 1, None] * pyf + hinv_r[:, 1, 2, None]) / wx
           - cc[:, 1, None]) * sg[:, 1, None]
-    use = (within & (du_all <= BEYOND_EDGE_PX) & (dv_all <= BEYOND_EDGE_PX) & (ou >= -0.2) & (ov >= -0.2)
+    use = (within & (du_all <= BEYOND_EDGE_PX) & (dv_all <= BEYOND_EDGE_PX)
+           & (ou >= -PATCH_INNER) & (ov >= -PATCH_INNER)
            & ~near_code)
 
     # Pack each disc's pixels to the front of its row (padding has weight 0).
@@ -212,28 +225,30 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
         ink, pu, pv = ndtr(zi), ndtr(zu), ndtr(zv)
         card = pu * pv
         white, contrast, back = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
-        inner = white - back - contrast * ink
-        pred = back + card * inner
-        return pred, (d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, inner)
+        step = white - back  # the card's edge, from background to white
+        # The disc lies inside the card, so blurring the printed card is linear in its
+        # parts: the blurred disc is subtracted, not multiplied by the blurred card.
+        pred = back + card * step - contrast * ink
+        return pred, (d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, step)
 
     def jacobian(theta: np.ndarray, parts: tuple[np.ndarray, ...]) -> np.ndarray:
-        d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, inner = parts
+        d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, step = parts
         s = theta[:, 5:6]
         contrast = theta[:, 3:4]
         gi = np.exp(-0.5 * zi * zi) * _INV_SQRT_2PI
         gu = np.exp(-0.5 * zu * zu) * _INV_SQRT_2PI
         gv = np.exp(-0.5 * zv * zv) * _INV_SQRT_2PI
-        dink = -card * contrast * gi  # d pred / d zi
+        dink = -contrast * gi  # d pred / d zi
         jac = np.empty(px.shape + (8,))
         jac[..., 0] = dink * (-dd0 / s)
         jac[..., 1] = dink * (-dd1 / s)
         jac[..., 2] = card
-        jac[..., 3] = -card * ink
+        jac[..., 3] = -ink
         jac[..., 4] = 1.0 - card
         # z = -x / s -> dz/ds = -z / s
-        jac[..., 5] = (dink * (-zi) + inner * (pv * gu * (-zu) + pu * gv * (-zv))) / s
-        jac[..., 6] = inner * pv * gu / s  # dz_u / de_u = 1 / s
-        jac[..., 7] = inner * pu * gv / s
+        jac[..., 5] = (dink * (-zi) + step * (pv * gu * (-zu) + pu * gv * (-zv))) / s
+        jac[..., 6] = step * pv * gu / s  # dz_u / de_u = 1 / s
+        jac[..., 7] = step * pu * gv / s
         return jac
 
     # Start: white and background from the pixels away from the disc, contrast from its
