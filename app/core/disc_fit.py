@@ -17,7 +17,8 @@ code area and a margin around it are left out) are modelled as
 (the blurred image of the printed card: blurring is linear, and the disc lies inside
 the card, so the blurred disc is subtracted as it is; multiplying it by the blurred
 card, as an earlier version did, took ink away near the card's edge and moved thin
-discs outward by up to ~8 mpx under a blur of 0.6 px) with ``ink = Phi(-d / s)`` and ``card = Phi(-(d_u - e_u) / s) * Phi(-(d_v - e_v) / s)``:
+discs outward by up to ~8 mpx under a blur of 0.6 px), with ``ink = Phi(-d / s)`` and
+``card = Phi(-(d_u - e_u) / s) * Phi(-(d_v - e_v) / s)``:
 
 - d: the signed distance (pixels, first order) to the disc's image ellipse. Its shape
   and the offset of its centre from the projected disc centre come from the card's
