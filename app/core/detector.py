@@ -31,8 +31,8 @@ class Detector:
     """`fit_discs`: fit the centres of small discs (semi-major axis up to 8 px) with a
     model of the card around each (`disc_fit`) instead of keeping the detector's
     centroids: median error 0.010 px instead of 0.014 on the survey bench's walks, 0.018
-    instead of 0.029 on discs thinner than 2 px (bench/bench_disc_fit.py); ~14 ms more
-    per frame. For the survey, not for live tracking."""
+    instead of 0.029 on discs of 1.5-2 px minor semi-axis (bench/bench_disc_fit.py); ~13 ms
+    more per frame. For the survey, not for live tracking."""
 
     classifier: DiscClassifier
     family: str = DEFAULT_FAMILY

@@ -71,6 +71,9 @@ PATCH_INNER = 0.25
 #: limited by BEYOND_EDGE_PX.
 PATCH_OUTER = 0.2
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
+#: (4, 2) per disc and card axis, the direction (+1 or -1 in card units) of the disc's
+#: two nearby card edges.
+_OUTWARD = np.where(DISC_CENTRES < 0.5, -1.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -135,14 +138,14 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     with np.errstate(all="ignore"):
         hinv = np.linalg.inv(hs)
     card_centre = np.tile(DISC_CENTRES, (t, 1))  # (D, 2)
-    sign = np.where(card_centre < 0.5, -1.0, 1.0)  # toward the disc's two nearby card edges
+    sign = np.tile(_OUTWARD, (t, 1))  # (D, 2)
     m, q, ok = _disc_conics(hinv, card_centre)
     semi_major = 1.0 / np.sqrt(np.maximum(np.linalg.eigvalsh(np.where(ok[:, None, None], q, np.eye(2)))[:, 0], 1e-12))
     ok &= semi_major <= max_radius_px
     # The patch: the image of the disc's corner of the card, out to its edges.
     span = np.array([[-PATCH_INNER, -PATCH_INNER], [PATCH_OUTER, -PATCH_INNER], [PATCH_OUTER, PATCH_OUTER],
                      [-PATCH_INNER, PATCH_OUTER]])  # (outward, outward) from the disc's centre
-    corner_pts = (DISC_CENTRES[:, None, :] + span[None] * np.where(DISC_CENTRES < 0.5, -1.0, 1.0)[:, None, :])
+    corner_pts = DISC_CENTRES[:, None, :] + span[None] * _OUTWARD[:, None, :]
     corners = apply_homographies(card_hs, corner_pts.reshape(-1, 2)).reshape(t * 4, 4, 2)
     h, w = img.shape
     lo = np.floor(corners.min(axis=1) - BEYOND_EDGE_PX - 1.0)
@@ -161,7 +164,7 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     within = (xs <= hi[:, 0, None, None]) & (ys <= hi[:, 1, None, None])
     xs, ys = xs.reshape(n, -1), ys.reshape(n, -1)
     within = within.reshape(n, -1)
-    hs_r, hinv_r, cc, sg = hs[rows], hinv[rows], card_centre[rows], sign[rows]
+    hinv_r, cc, sg = hinv[rows], card_centre[rows], sign[rows]
     mr, qr = m[rows], q[rows]
 
     # Which pixels take part: inside the card or just beyond its two nearby edges, on

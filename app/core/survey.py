@@ -194,10 +194,10 @@ def _is_face(discs: np.ndarray) -> bool:
 
 #: Expected error of a disc centre (px per axis) against the minor semi-axis b of the
 #: disc's image: ``DISC_ERROR_PX[0] + DISC_ERROR_PX[1] / b**2``. A thin disc is measured
-#: worse (fewer pixels across, the card's edge and code closer). Fitted centres
-#: (`disc_fit`) on 100 frames of a survey bench walk (ad-hoc) measured 0.022 px RMS at
-#: b < 1.5 px, 0.010 at 2-2.5, 0.007 at 3-4 and 0.0064 at 4-6; bench/bench_disc_fit.py
-#: prints the same by bins.
+#: worse (fewer pixels across, the card's edge and code closer). Tuned on session 5's
+#: fitted centres (`disc_fit` before its linear model; 100 frames of a survey bench walk,
+#: ad-hoc): 0.022 px RMS at b < 1.5 px, 0.010 at 2-2.5, 0.007 at 3-4, 0.0064 at 4-6.
+#: bench/bench_disc_fit.py prints the current model's by bins; not re-tuned to it.
 DISC_ERROR_PX = (0.006, 0.022)
 
 
