@@ -201,7 +201,7 @@ def main() -> None:
                         help="rooms (card placement, both walks, rendering noise)")
     parser.add_argument("--quick", action="store_true", help="120 + 60 frames, one room")
     parser.add_argument("--details", action="store_true", help="the full table of every room")
-    parser.add_argument("--card-prior-mm", type=float, default=1.0, help="0: no card-size prior in BA")
+    parser.add_argument("--card-prior-mm", type=float, default=0.01, help="0: no card-size prior in BA")
     parser.add_argument("--centroids", action="store_true",
                         help="survey on the detector's centroids, as /track sees them, instead of fitted disc "
                              "centres (Detector.fit_discs, what the survey job uses)")

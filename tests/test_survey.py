@@ -137,6 +137,30 @@ def test_misidentified_views_are_removed() -> None:
     assert result.rms_px < 0.3
 
 
+def test_a_disc_centre_far_off_is_set_aside() -> None:
+    """A fitted disc centre is good to ~0.01 px, but now and then one is 0.3-0.9 px off
+    (glare or an occluder on one disc). Such a view is set aside and the map stays as
+    it was: judged by the noise level, not by a fixed pixel tolerance (at the old 3 px,
+    with Huber's loss from 1 px, these two views moved this map from 0.28 to 1.3 mm)."""
+    scene, _ = _room()
+    clean = _synthetic_frames(0.01, seed=2)
+    frames = [list(f) for f in clean]
+    rng = np.random.default_rng(2)
+    views = [(i, j) for i, f in enumerate(frames) for j in range(len(f))]
+    bad = rng.choice(len(views), size=len(views) // 100, replace=False)
+    for k in bad:
+        i, j = views[k]
+        discs = frames[i][j].discs.copy()
+        angle = rng.uniform(0, 2 * np.pi)
+        discs[rng.integers(4)] += 0.5 * np.array([np.cos(angle), np.sin(angle)])
+        frames[i][j] = DetectedTarget(frames[i][j].id, discs, 1.0)
+    assert len(bad) == 2
+    result = survey(frames, 640, 480, SIZE)
+    reference = survey(clean, 640, 480, SIZE)
+    assert reference.n_rejected_views == 0 and result.n_rejected_views == len(bad)
+    assert _disc_rms(result, scene) < 1.1 * _disc_rms(reference, scene)
+
+
 @pytest.mark.parametrize("seed", [5, 8])  # 5: a card the old refinement placed 0.85 m off
 def test_wrongly_identified_card_in_later_frames_is_removed(seed: int) -> None:
     """A misread code in the middle of the video, in frames with other targets."""
