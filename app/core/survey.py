@@ -1429,7 +1429,7 @@ def survey(
         np.maximum.at(view_err, obs // 4, np.nan_to_num(err, nan=np.inf))
         return view_err
 
-    def prune(threshold: float, px_unit: np.ndarray | None = None) -> bool:
+    def prune(threshold: float, px_unit: np.ndarray | None = None, readmit_below: float | None = None) -> bool:
         """Judge the map by every view of a registered frame and a placed target, also
         those set aside: a frame or a target most of whose views do not fit is wrong
         (unregistered / unplaced; the target's views get a new chance), a single view
@@ -1439,10 +1439,12 @@ def survey(
         Why all views: judged by the views it kept, a target placed from a few wrong
         views (a folded projection from outside the field, placed from its planar pose)
         fits them perfectly, while the 60 right ones had been set aside as outliers
-        against it, one frame at a time."""
+        against it, one frame at a time. A view set aside is taken back below
+        ``readmit_below`` (default: the threshold)."""
         changed = False
         judged = bundle.registered()[view_frame] & bundle.placed()[view_target * 4]
-        misfit = judged & (view_errors(judged, px_unit) > threshold)
+        errors = view_errors(judged, px_unit)
+        misfit = judged & (errors > threshold)
         for f in np.flatnonzero(bundle.registered()):
             v = views_of_frame[f][judged[views_of_frame[f]]]
             if f != seed and len(v) and misfit[v].mean() > 0.5:
@@ -1459,7 +1461,7 @@ def survey(
                 changed = True
         judged &= bundle.placed()[view_target * 4]
         bad = judged & misfit & usable
-        readmit = judged & ~misfit & ~usable
+        readmit = judged & ~usable & (errors <= (threshold if readmit_below is None else readmit_below))
         usable[bad] = False
         usable[readmit] = True
         return changed or bool(bad.any() or readmit.any())
@@ -1535,8 +1537,10 @@ def survey(
         register_frames(1, attempted)
         grew = place_targets() > 0 or int(bundle.registered().sum()) > before
         # Whole views are judged (a misidentified target moves all its 4 discs), also
-        # those set aside while the map grew: a view that fits now is taken back.
-        if not prune(1.0, np.maximum(OUTLIER_K * spread() * expected_px, MIN_OUTLIER_PX)) and not grew:
+        # those set aside while the map grew: a view that fits now is taken back; from
+        # the tight threshold only well inside it, else a view near it goes in and out
+        # every round (five rounds, the last two undoing each other).
+        if not prune(1.0, np.maximum(OUTLIER_K * spread() * expected_px, MIN_OUTLIER_PX), 0.5) and not grew:
             clean = True
             break
         # A frame left with no usable view, or a target with none: unregister / unplace.
