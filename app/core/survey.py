@@ -208,10 +208,10 @@ DISC_ERROR_PX = (0.0048, 0.032)
 #: Huber's loss from HUBER_K spreads on, views with a disc beyond OUTLIER_K spreads
 #: (and beyond MIN_OUTLIER_PX) are set aside, and taken back below half that. Why: a
 #: fitted centre is good to ~0.01 px, but a few in a thousand are 0.3-0.9 px off (glare
-#: or an occluder on one disc); at the old fixed thresholds (Huber from ~100 expected errors, outliers from 3 px) they kept
-#: full weight, and at 300 frames they moved the maps by up to 1 mm (bench_survey, 4
-#: rooms, same detections, ad-hoc: discs 0.36-0.96 -> 0.19-0.28 mm, median tracking
-#: ratio 2.14 -> 1.23; at 1000 frames 0.19-0.29 -> 0.12-0.17 mm, 1.15 -> 1.13).
+#: or an occluder on one disc); at the old fixed thresholds (Huber from ~100 expected
+#: errors, outliers from 3 px) they kept full weight, and at 300 frames they moved the
+#: maps by up to 1 mm (bench_survey, 4 rooms, same detections, ad-hoc: discs 0.36-0.96
+#: -> 0.19-0.28 mm, median tracking ratio 2.14 -> 1.23; at 1000 frames 0.19-0.29 -> 0.12-0.17 mm, 1.15 -> 1.13).
 HUBER_K = 2.5
 OUTLIER_K = 8.0
 MIN_OUTLIER_PX = 0.05
