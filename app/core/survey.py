@@ -211,7 +211,8 @@ DISC_ERROR_PX = (0.0048, 0.032)
 #: or an occluder on one disc); at the old fixed thresholds (Huber from ~100 expected
 #: errors, outliers from 3 px) they kept full weight, and at 300 frames they moved the
 #: maps by up to 1 mm (bench_survey, 4 rooms, same detections, ad-hoc: discs 0.36-0.96
-#: -> 0.19-0.28 mm, median tracking ratio 2.14 -> 1.23; at 1000 frames 0.19-0.29 -> 0.12-0.17 mm, 1.15 -> 1.13).
+#: -> 0.19-0.28 mm, median tracking ratio 2.14 -> 1.23; at 1000 frames 0.19-0.29 ->
+#: 0.12-0.17 mm, 1.15 -> 1.13).
 HUBER_K = 2.5
 OUTLIER_K = 8.0
 MIN_OUTLIER_PX = 0.05
