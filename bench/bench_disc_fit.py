@@ -10,6 +10,14 @@ four discs, which a survey cannot average away within a view), that mean's syste
 part toward the card's near side by how obliquely the card is seen (it repeats from
 view to view, so a survey cannot average it away either), the tails, and the time.
 
+Every frame is also rendered a second time with another draw of its sensor noise (same
+pose, same degradation, same clean image) and fitted from the same detections: half the
+squared difference of the two fits is the part of the error that the images' noise
+causes (random), the rest is the fit's model against the renderer (systematic, the same
+in both draws). The random part, fitted as a + c / b^2 over the minor semi-axis b, is
+the noise floor of any centre estimator on these images; `bench_survey --noise-floor a c`
+surveys with it.
+
 Run: ``.venv/bin/python bench/bench_disc_fit.py [--seeds 0 1] [--step 10]``
 """
 
@@ -30,7 +38,8 @@ from app.core.candidates import load_default_classifier
 from app.core.detector import Detector
 from app.core.disc_fit import fit_disc_centres
 from app.core.kernels import warm_up
-from app.core.scenes import camera_walk, render_walk, room_scene
+from app.core import degrade
+from app.core.scenes import camera_walk, render_frame, room_scene
 from app.core.targets import disc_axes, homographies
 from bench.bench_survey import TRUE_CAMERA
 
@@ -47,6 +56,38 @@ def toward_near_side(discs: np.ndarray) -> np.ndarray:
     return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
 
 
+def noise_floor(first: np.ndarray, second: np.ndarray, b: np.ndarray, fitted: np.ndarray,
+                first_mean: np.ndarray, second_mean: np.ndarray) -> None:
+    """Print the fitted error (px per axis) split into its random part (half the mean
+    squared difference of two noise draws) and its systematic part, by minor semi-axis
+    b, and the random part fitted as a + c / b^2."""
+    print("\nThe fitted centres' error: the images' noise (random: two noise draws of every frame) "
+          "and the fit's model (systematic: the rest), px per axis RMS, discs fitted in both draws\n")
+    print("| discs | n | total | random | systematic |")
+    print("|---|---|---|---|---|")
+
+    def row(label: str, x: np.ndarray, y: np.ndarray) -> float:
+        total = float(np.sqrt(np.mean((x**2 + y**2) / 2)))
+        random = float(np.sqrt(np.mean((x - y) ** 2) / 2))
+        print(f"| {label} | {len(x)} | {total:.4f} | {random:.4f} | {np.sqrt(max(total**2 - random**2, 0)):.4f} |")
+        return random
+
+    centres, randoms, counts = [], [], []
+    for lo, hi in zip(BINS[:-1], BINS[1:], strict=True):
+        m = fitted & (b >= lo) & (b < hi)
+        if m.sum() > 1:
+            randoms.append(row(f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px",
+                               first[m], second[m]))
+            centres.append(float(np.mean(1 / b[m] ** 2)))
+            counts.append(int(m.sum()))
+    row("all", first[fitted], second[fitted])
+    row("card's mean of its four discs", first_mean, second_mean)
+    # Weighted least squares of the bins' random RMS on their mean 1 / b^2.
+    A = np.stack([np.ones(len(centres)), centres], axis=1) * np.sqrt(counts)[:, None]
+    a, c = np.linalg.lstsq(A, np.array(randoms) * np.sqrt(counts), rcond=None)[0]
+    print(f"\nrandom part ~ {a:.4f} + {c:.4f} / b^2 px per axis (bench_survey.py --noise-floor {a:.4f} {c:.4f})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -55,14 +96,19 @@ def main() -> None:
     cv2.setNumThreads(1)
     detector = Detector(load_default_classifier())
     warm_up()
-    centroid, fitted, minor, was_fitted, facing, near = [], [], [], [], [], []
+    centroid, fitted, refitted, minor, was_fitted, both, facing, near = [], [], [], [], [], [], [], []
     fit_s, n_frames = 0.0, 0
+    ranges = degrade.PRESETS["default"]
     for seed in args.seeds:
         rng = np.random.default_rng(seed)  # bench_survey's room, walk and rendering
         scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
         walk = camera_walk(rng, scene.room_size, 1000, kind="calibration")[:: args.step]
-        for image, truth in tqdm(render_walk(scene, TRUE_CAMERA, walk, rng), total=len(walk),
-                                 desc=f"room {seed}", unit="frame"):
+        # The second noise draws have their own stream, so the first frames are render_walk's.
+        noise_rng = np.random.default_rng([seed, 2])
+        for pose in tqdm(walk, desc=f"room {seed}", unit="frame"):
+            degradation = ranges.sample(rng)
+            image, truth = render_frame(scene, TRUE_CAMERA, pose, rng, degradation)
+            again, _ = render_frame(scene, TRUE_CAMERA, pose, noise_rng, degradation)
             n_frames += 1
             by_id = {t.id: t for t in truth.targets}
             found = [t for t in detector.detect(image).targets if t.id in by_id]
@@ -72,11 +118,14 @@ def main() -> None:
             start = time.perf_counter()
             fit = fit_disc_centres(image, discs, homographies(discs))
             fit_s += time.perf_counter() - start
+            refit = fit_disc_centres(again, discs, homographies(discs))
             true = np.array([by_id[t.id].discs_px for t in found])
             centroid.append(discs - true)
             fitted.append(fit.centres - true)
+            refitted.append(refit.centres - true)
             minor.append(disc_axes(discs)[..., 1])
             was_fitted.append(fit.fitted)
+            both.append(fit.fitted & refit.fitted)
             facing.append([by_id[t.id].facing_cos for t in found])
             near.append(toward_near_side(true))
     c, f = np.concatenate(centroid), np.concatenate(fitted)
@@ -118,6 +167,10 @@ def main() -> None:
     for q in (0.9, 0.99):
         print(f"| 2-D error, {round(100 * q)}th percentile | {len(cn)} | {np.quantile(cn, q):.4f} "
               f"| {np.quantile(fn, q):.4f} | {np.quantile(fn, q) / np.quantile(cn, q):.2f} |")
+    r = np.concatenate(refitted)
+    twice = np.concatenate(both)  # (cards, 4): fitted in both draws
+    whole = twice.all(axis=1)
+    noise_floor(fe, r.reshape(-1, 2), b, twice.ravel(), fm[whole], r.mean(axis=1)[whole])
     print(f"\nfit time: {1000 * fit_s / n_frames:.1f} ms per frame ({1000 * fit_s / max(len(c), 1):.2f} ms per card)")
 
 

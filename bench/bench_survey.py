@@ -33,7 +33,7 @@ from app.core.kernels import warm_up
 from app.core.pose import PoseUndetermined, TargetObservation, estimate_pose
 from app.core.scenes import camera_walk, frame_truth, render_walk, room_scene
 from app.core.survey import survey
-from app.core.targets import DetectedTarget
+from app.core.targets import DetectedTarget, disc_axes
 
 TRUE_CAMERA = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
                      np.array([-0.12, 0.0, 0.0, 0.0, 0.0]), 640, 480)
@@ -61,6 +61,25 @@ def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: flo
         detect_s += time.perf_counter() - start
         truths.append(truth)
     return frames, truths, detect_s
+
+
+def _at_noise_floor(frames, truths, a: float, c: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+    """The same detections (the same views of the same cards) moved to their true disc
+    projections plus independent Gaussian noise of a + c / b^2 px per axis (b: the
+    disc image's minor semi-axis): a detector without systematic error, at the noise
+    floor that bench_disc_fit measures on these images. Misidentified cards are dropped."""
+    out = []
+    for detected, truth in zip(frames, truths, strict=True):
+        by_id = {t.id: t for t in truth.targets}
+        views = []
+        for t in detected:
+            if t.id not in by_id:
+                continue
+            true = by_id[t.id].discs_px
+            sigma = a + c / np.maximum(disc_axes(true[None])[0, :, 1], 0.5) ** 2
+            views.append(dataclasses.replace(t, discs=true + rng.normal(0.0, 1.0, (4, 2)) * sigma[:, None]))
+        out.append(views)
+    return out
 
 
 def _track(frames, truths, discs: dict[int, np.ndarray], camera: Camera, to_world):  # type: ignore[no-untyped-def]
@@ -92,18 +111,42 @@ class RoomResult:
     e_surv: np.ndarray
     stages_s: dict[str, float]
     warnings: list[str]
+    draw: int | None = None  # the noise draw (--noise-floor)
 
 
 def run_room(seed: int, n_frames: int, n_tracking: int, card_prior_mm: float,
-             detector: Detector, survey_detector: Detector, ideal_px: float | None = None) -> RoomResult:
+             detector: Detector, survey_detector: Detector, ideal_px: float | None = None,
+             noise_floor: tuple[float, float] | None = None, draws: int = 1) -> list[RoomResult]:
     """`survey_detector` runs on the calibration walk (as the survey job's, with fitted
-    disc centres), `detector` on the tracking walk (as /track's)."""
+    disc centres), `detector` on the tracking walk (as /track's). With `noise_floor`
+    (a, c) the survey gets the calibration walk's detections at the noise floor
+    (`_at_noise_floor`), once per noise draw (`draws`: a result each); the tracking walk
+    is detected as usual."""
     rng = np.random.default_rng(seed)
     scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
     walk = camera_walk(rng, scene.room_size, n_frames, kind="calibration")
-    frames, _, detect_s = _detect_walk(survey_detector, scene, walk, rng, f"seed {seed}: calibration walk",
-                                       ideal_px)
+    frames, walk_truths, detect_s = _detect_walk(survey_detector, scene, walk, rng,
+                                                 f"seed {seed}: calibration walk", ideal_px)
+    # The tracking walk has its own random stream: the same walk (and rendering) whatever
+    # the calibration walk's length, so runs with different lengths compare on the same frames.
+    track_rng = np.random.default_rng([seed, 1])
+    track_walk = camera_walk(track_rng, scene.room_size, n_tracking, kind="tracking")
+    t_frames, t_truths, _ = _detect_walk(detector, scene, track_walk, track_rng, f"seed {seed}: tracking walk",
+                                         ideal_px)
+    if noise_floor is None:
+        return [_survey_room(seed, scene, frames, detect_s, t_frames, t_truths, card_prior_mm)]
+    return [dataclasses.replace(
+                _survey_room(seed, scene, _at_noise_floor(frames, walk_truths, *noise_floor,
+                                                          np.random.default_rng([seed, 3, draw])),
+                             detect_s, t_frames, t_truths, card_prior_mm), draw=draw)
+            for draw in range(draws)]
 
+
+def _survey_room(seed: int, scene, frames, detect_s: float, t_frames, t_truths,  # type: ignore[no-untyped-def]
+                 card_prior_mm: float) -> RoomResult:
+    """Survey the calibration walk's detections `frames`, then track the tracking walk's
+    with the surveyed and with the true map and camera."""
+    n_frames, n_tracking = len(frames), len(t_frames)
     start = time.perf_counter()
     prior = card_prior_mm / 1000 if card_prior_mm > 0 else None
     result = survey(frames, 640, 480, 0.2, card_prior_m=prior)
@@ -119,12 +162,6 @@ def run_room(seed: int, n_frames: int, n_tracking: int, card_prior_mm: float,
     std = np.concatenate([t.std_m for t in result.targets])
     detected_ids = {t.id for f in frames for t in f}
 
-    # The tracking walk has its own random stream: the same walk (and rendering) whatever
-    # the calibration walk's length, so runs with different lengths compare on the same frames.
-    track_rng = np.random.default_rng([seed, 1])
-    track_walk = camera_walk(track_rng, scene.room_size, n_tracking, kind="tracking")
-    t_frames, t_truths, _ = _detect_walk(detector, scene, track_walk, track_rng, f"seed {seed}: tracking walk",
-                                         ideal_px)
     surveyed = {t.id: t.discs for t in result.targets}
     # Same frames, same detections, same targets (those the survey mapped) in both runs:
     # the comparison is of map + camera quality, not coverage. Each run uses its own
@@ -208,37 +245,48 @@ def main() -> None:
     parser.add_argument("--ideal-px", type=float, default=None,
                         help="an ideal detector instead of rendering + detection: true disc projections "
                              "plus independent Gaussian noise of this many px (the real one's error is 0.023)")
+    parser.add_argument("--noise-floor", type=float, nargs=2, default=None, metavar=("A", "C"),
+                        help="survey on the real detector's views moved to the truth plus Gaussian noise of "
+                             "A + C / b^2 px (b: minor semi-axis), the images' noise floor from bench_disc_fit")
+    parser.add_argument("--draws", type=int, default=3,
+                        help="with --noise-floor: noise draws per room (a row each, all pooled)")
     args = parser.parse_args()
+    if args.ideal_px is not None and args.noise_floor is not None:
+        parser.error("--ideal-px and --noise-floor are two different detectors: pick one")
     if args.quick:
         args.frames, args.tracking_frames, args.seeds = 120, 60, args.seeds[:1]
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()  # the detector's compiled kernels: not part of the first frame's time
     survey_detector = detector if args.centroids else dataclasses.replace(detector, fit_discs=True)
-    rooms = [run_room(seed, args.frames, args.tracking_frames, args.card_prior_mm, detector, survey_detector,
-                      args.ideal_px)
-             for seed in tqdm(args.seeds, desc="rooms", unit="room")]
+    rooms = [room for seed in tqdm(args.seeds, desc="rooms", unit="room")
+             for room in run_room(seed, args.frames, args.tracking_frames, args.card_prior_mm, detector,
+                                  survey_detector, args.ideal_px, args.noise_floor, args.draws)]
 
     print(f"\nSurvey bench: room 8x6x3 m, 30 cards of 0.2 m, 640x480, f 820 px, k1 -0.12, "
           f"{args.frames}-frame calibration walk, {args.tracking_frames}-frame tracking walk, "
           f"card prior {args.card_prior_mm} mm, "
           + (f"the real detector on rendered frames ({'centroids' if args.centroids else 'fitted disc centres'} "
              "in the survey, centroids in tracking)" if args.ideal_px is None
-             else f"an ideal detector: truth + {args.ideal_px} px Gaussian noise") + "\n")
+             else f"an ideal detector: truth + {args.ideal_px} px Gaussian noise")
+          + (f"; the survey's views at the noise floor, truth + {args.noise_floor[0]} + {args.noise_floor[1]} / b^2 px"
+             if args.noise_floor else "") + "\n")
     print("| seed | focal error | principal point (px) | disc RMS (mm) | survey + detection (s) "
           "| tracking median, true / surveyed map (mm) | ratio: median | ratio: RMS |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rooms:
         ok = np.isfinite(r.e_true)
         t, s = _stats(r.e_true, ok), _stats(r.e_surv, ok)
-        print(f"| {r.seed} | {r.focal_pct:+.3f} % | {r.principal_px:.2f} | {r.disc_rms_mm:.2f} "
+        label = f"{r.seed}" if r.draw is None else f"{r.seed} (draw {r.draw})"
+        print(f"| {label} | {r.focal_pct:+.3f} % | {r.principal_px:.2f} | {r.disc_rms_mm:.2f} "
               f"| {r.survey_s + r.detect_s:.1f} ({r.survey_s:.1f} + {r.detect_s:.1f}) "
               f"| {t[1]:.2f} / {s[1]:.2f} | {s[1] / t[1]:.2f} | {s[0] / t[0]:.2f} |")
     e_true = np.concatenate([r.e_true for r in rooms])
     e_surv = np.concatenate([r.e_surv for r in rooms])
     ok = np.isfinite(e_true)
     t, s = _stats(e_true, ok), _stats(e_surv, ok)
-    print(f"| all ({ok.sum()} tracked frames) | worst {max(abs(r.focal_pct) for r in rooms):.3f} % "
+    pooled = f"{ok.sum()} tracked frames" + (", every draw" if args.noise_floor else "")
+    print(f"| all ({pooled}) | worst {max(abs(r.focal_pct) for r in rooms):.3f} % "
           f"| worst {max(r.principal_px for r in rooms):.2f} | worst {max(r.disc_rms_mm for r in rooms):.2f} "
           f"| worst {max(r.survey_s + r.detect_s for r in rooms):.1f} "
           f"| {t[1]:.2f} / {s[1]:.2f} | {s[1] / t[1]:.2f} | {s[0] / t[0]:.2f} |")
