@@ -12,6 +12,11 @@ tracking walk; the tracking ratio varies a lot from room to room (1.0-2.8 for on
 the summary pools the tracking frames of all seeds. Targets from the issue: focal error
 <= 0.2 %, disc RMS <= 3 mm, tracking with the surveyed map within 10 % of the true map,
 300 frames < 60 s, 1000 frames < 3 min.
+
+``--noise-floor A C`` surveys the detector's own views with each disc moved to its true
+projection plus the noise that the images alone cause (`bench_disc_fit` measures it by
+rendering every frame twice): what a detector without any model error would give on the
+same walk. ``--ideal-px`` is an older, cruder ideal: its own views, one noise level.
 """
 
 from __future__ import annotations
