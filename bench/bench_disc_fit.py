@@ -12,11 +12,12 @@ view to view, so a survey cannot average it away either), the tails, and the tim
 
 Every frame is also rendered a second time with another draw of its sensor noise (same
 pose, same degradation, same clean image) and fitted from the same detections: half the
-squared difference of the two fits is the part of the error that the images' noise
+mean squared difference of the two fits is the part of the error that the images' noise
 causes (random), the rest is the fit's model against the renderer (systematic, the same
 in both draws). The random part, fitted as a + c / b^2 over the minor semi-axis b, is
-the noise floor of any centre estimator on these images; `bench_survey --noise-floor a c`
-surveys with it.
+what the fit would be left with if its model were exact (a least-squares fit of the
+pixels: about as little as any estimator gets from these images);
+`bench_survey --noise-floor a c` surveys with it.
 
 Run: ``.venv/bin/python bench/bench_disc_fit.py [--seeds 0 1] [--step 10]``
 """
@@ -34,11 +35,11 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for bench.bench_survey
 
+from app.core import degrade
 from app.core.candidates import load_default_classifier
 from app.core.detector import Detector
 from app.core.disc_fit import fit_disc_centres
 from app.core.kernels import warm_up
-from app.core import degrade
 from app.core.scenes import camera_walk, render_frame, room_scene
 from app.core.targets import disc_axes, homographies
 from bench.bench_survey import TRUE_CAMERA
