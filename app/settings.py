@@ -34,7 +34,7 @@ class Settings(BaseSettings):
     max_video_frames: int = Field(20_000, ge=1, description="Longest survey video, in frames.")
     max_video_pixels: int = Field(3840 * 2160, ge=64 * 64, description="Largest survey video frame (width*height).")
     max_survey_images: int = Field(2000, ge=1, description="Most images in one survey upload.")
-    survey_frames: int = Field(400, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
+    survey_frames: int = Field(1000, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
     max_track_fps: float = Field(120.0, gt=0, description="Frames per second one /track client may send.")
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
     max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
