@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -244,6 +246,31 @@ def test_detection_in_regions_equals_full_frame_detection(room, detector: Detect
     # another start, which stops within the refinement's tolerance (0.01 px) of the same
     # centres, not at identical ones.
     assert np.median(gaps) < 1e-3 and np.mean(np.array(gaps) <= 0.01) >= 0.9 and max(gaps) < 0.06
+
+
+def test_fitted_disc_centres_in_regions_equal_the_full_frames(room, detector: Detector) -> None:  # type: ignore[no-untyped-def]
+    # The survey's detector (fitted centres) on crops: the fit runs on the whole frame
+    # after assembly, so with room around each card it gives the full scan's centres.
+    _, poses, picked, images, targets = room
+    fitting = dataclasses.replace(detector, fit_discs=True)
+    gaps, moved = [], []
+    for i, image in zip(picked, images, strict=True):
+        wide = R.predict_regions(targets, CAMERA, poses[i - 1], 1, poses[i - 2], 1,
+                                 R.RegionParams(border_px=48, max_fraction=1.0))
+        if wide is None:
+            continue
+        full = {t.id: t for t in fitting.detect(image).targets}
+        plain = {t.id: t for t in detector.detect(image).targets}
+        part = fitting.detect(image, wide)
+        assert "targets.fit" in part.timing_ms
+        assert {t.id for t in part.targets} == set(full)
+        for t in part.targets:
+            gaps.append(float(np.abs(t.discs - full[t.id].discs).max()))
+            moved.append(float(np.abs(t.discs - plain[t.id].discs).max()))
+    assert len(gaps) >= 30
+    assert max(gaps) < 0.01
+    # The fit did run: it moves centres away from the detector's centroids.
+    assert np.median(moved) > 0.002
 
 
 def test_detect_with_no_regions_finds_nothing_and_tiny_regions_are_grown(room, detector: Detector) -> None:  # type: ignore[no-untyped-def]
