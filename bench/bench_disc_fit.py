@@ -48,6 +48,11 @@ BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]
 FACING_BINS = [0.3, 0.5, 0.7, 0.85, 1.01]
 
 
+def bin_label(lo: float, hi: float) -> str:
+    """A BINS row's label."""
+    return f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px"
+
+
 def toward_near_side(discs: np.ndarray) -> np.ndarray:
     """Unit image vectors (T, 2) from each card's middle toward its near side (where
     perspective makes its discs larger), from its four disc centres (T, 4, 2)."""
@@ -77,8 +82,7 @@ def noise_floor(first: np.ndarray, second: np.ndarray, b: np.ndarray, fitted: np
     for lo, hi in zip(BINS[:-1], BINS[1:], strict=True):
         m = fitted & (b >= lo) & (b < hi)
         if m.sum() > 1:
-            randoms.append(row(f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px",
-                               first[m], second[m]))
+            randoms.append(row(bin_label(lo, hi), first[m], second[m]))
             centres.append(float(np.mean(1 / b[m] ** 2)))
             counts.append(int(m.sum()))
     row("all", first[fitted], second[fitted])
@@ -117,9 +121,10 @@ def main() -> None:
                 continue
             discs = np.array([t.discs for t in found])
             start = time.perf_counter()
-            fit = fit_disc_centres(image, discs, homographies(discs))
+            cards = homographies(discs)
+            fit = fit_disc_centres(image, discs, cards)
             fit_s += time.perf_counter() - start
-            refit = fit_disc_centres(again, discs, homographies(discs))
+            refit = fit_disc_centres(again, discs, cards)  # the same detections' homographies
             true = np.array([by_id[t.id].discs_px for t in found])
             centroid.append(discs - true)
             fitted.append(fit.centres - true)
@@ -152,7 +157,7 @@ def main() -> None:
     for lo, hi in zip(BINS[:-1], BINS[1:], strict=True):
         m = (b >= lo) & (b < hi)
         if m.sum():
-            row(f"minor semi-axis {lo:g}-{hi:g} px" if hi < 100 else f"minor semi-axis >= {lo:g} px", m)
+            row(bin_label(lo, hi), m)
     row("all", np.ones(len(b), bool))
     cm, fm = c.mean(axis=1), f.mean(axis=1)
     print(f"| card's mean of its four discs (RMS) | {len(c)} | {rms(cm):.4f} | {rms(fm):.4f} | {rms(fm) / rms(cm):.2f} |")
