@@ -55,7 +55,7 @@ def _synth_frames(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from app.core import scenes
+    from app.sim import scenes
 
     import dataclasses
 
@@ -81,8 +81,8 @@ def _synth_room(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from app.core import scenes
-    from app.core.camera import Camera
+    from app.sim import scenes
+    from app.core.geometry import Camera
 
     size = tuple(float(v) for v in args.room.split("x"))
     if len(size) != 3:
@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def scenes_names() -> list[str]:
-    from app.core.scenes import SCENARIOS
+    from app.sim.scenes import SCENARIOS
 
     return list(SCENARIOS)
 

@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse
 from threadpoolctl import threadpool_limits
 
 from app import __version__, logs
-from app.core import kernels
+from app.core.detection import warm_up
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
 from app.deps import authorize
 from app.middleware import BodyLimit, RequestObserver
@@ -47,7 +47,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         classifiers.install_default(session)
     # The detector's compiled kernels: loaded from numba's cache (~0.5 s), or compiled on
     # a cold cache (~10 s), now rather than on the first frame a client sends.
-    await anyio.to_thread.run_sync(kernels.warm_up)
+    await anyio.to_thread.run_sync(warm_up)
     runner = JobRunner(settings.resolved_database_url, settings.sqlite_busy_timeout_ms, settings.data_dir,
                        sessions, settings.max_concurrent_jobs)
     runner.start()

@@ -26,9 +26,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core import candidates as cand  # noqa: E402
-from app.core import kernels  # noqa: E402
-from app.core import training  # noqa: E402
+from app.core.detection import candidates as cand  # noqa: E402
+from app.core.detection import kernels  # noqa: E402
+from app.learning import training  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter")
 

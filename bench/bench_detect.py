@@ -47,7 +47,7 @@ from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.core import scenes  # noqa: E402
+from app.sim import scenes  # noqa: E402
 from bench.peers import Detection, PeerDetector, TruthCard, all_detectors, truth_cards  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter")

@@ -1,5 +1,5 @@
 """Disc centres on the survey bench's room walks: the detector's centroids (what /track
-uses) against the fitted centres (`app.core.disc_fit`, what the survey uses), on the same
+uses) against the fitted centres (`app.core.detection.disc_fit`, what the survey uses), on the same
 detections, against the renderer's truth.
 
 Frames: every 10th pose of the 1000-frame calibration walks of bench_survey's rooms
@@ -35,13 +35,13 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for bench.bench_survey
 
-from app.core import degrade
-from app.core.candidates import load_default_classifier
-from app.core.detector import Detector
-from app.core.disc_fit import fit_disc_centres
-from app.core.kernels import warm_up
-from app.core.scenes import camera_walk, render_frame, room_scene
-from app.core.targets import disc_axes, homographies
+from app.sim import degrade
+from app.core.detection.candidates import load_default_classifier
+from app.core.detection.detector import Detector
+from app.core.detection.disc_fit import fit_disc_centres
+from app.core.detection.kernels import warm_up
+from app.sim.scenes import camera_walk, render_frame, room_scene
+from app.core.geometry.homography import disc_axes, homographies
 from bench.bench_survey import TRUE_CAMERA
 
 BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]

@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.core import pose as pose_module
-from app.core.camera import Camera, Pose
-from app.core.pose import TargetObservation, cramer_rao_position_rms, estimate_pose
-from app.core.scenes import PlacedTarget
+from app.core.geometry import pose as pose_module
+from app.core.geometry.camera import Camera, Pose
+from app.core.geometry.pose import TargetObservation, cramer_rao_position_rms, estimate_pose
+from app.sim.scenes import PlacedTarget
 
 ROWS = {"1 target, nonlinear": ("single", 1), "3 targets, mean of single poses": ("mean", 3),
         "3 targets, POSIT": ("posit", 3), "3 targets, nonlinear (paper)": ("nonlinear", 3)}

@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 
-from app.core import degrade, scenes
-from app.core.camera import Camera
-from app.core.render import render
+from app.sim import degrade, scenes
+from app.core.geometry.camera import Camera
+from app.sim.render import render
 
 
 def _percentiles(ms: list[float]) -> str:

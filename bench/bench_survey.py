@@ -30,15 +30,16 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.core.alignment import similarity_from_points
-from app.core.camera import Camera
-from app.core.candidates import load_default_classifier
-from app.core.detector import Detector
-from app.core.kernels import warm_up
-from app.core.pose import PoseUndetermined, TargetObservation, estimate_pose
-from app.core.scenes import camera_walk, frame_truth, render_walk, room_scene
+from app.core.geometry.alignment import similarity_from_points
+from app.core.geometry.camera import Camera
+from app.core.detection.candidates import load_default_classifier
+from app.core.detection.detector import Detector
+from app.core.detection.kernels import warm_up
+from app.core.geometry.pose import PoseUndetermined, TargetObservation, estimate_pose
+from app.sim.scenes import camera_walk, frame_truth, render_walk, room_scene
 from app.core.survey import survey
-from app.core.targets import DetectedTarget, disc_axes
+from app.core.detection.targets import DetectedTarget
+from app.core.geometry.homography import disc_axes
 
 TRUE_CAMERA = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
                      np.array([-0.12, 0.0, 0.0, 0.0, 0.0]), 640, 480)

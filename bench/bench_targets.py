@@ -1,4 +1,4 @@
-"""The targets stage alone (app.core.targets.assemble_targets): proposals, survivors of
+"""The targets stage alone (app.core.detection.targets.assemble_targets): proposals, survivors of
 each check and time per sub-stage, on rendered 640x480 frames of each condition, fed
 either the true discs plus simulated false candidates (``simulate_candidates``: code
 cells, card corners, random points, dark texture spots) or the real candidate stage's
@@ -36,8 +36,8 @@ from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.core.candidates import find_candidates, load_default_classifier, pyramid  # noqa: E402
-from app.core.targets import assemble_targets, simulate_candidates  # noqa: E402
+from app.core.detection.candidates import find_candidates, load_default_classifier, pyramid  # noqa: E402
+from app.core.detection.targets import assemble_targets, simulate_candidates  # noqa: E402
 from bench.bench_detect import EMPTY, Stats, draw_frame, score_frame  # noqa: E402
 from bench.peers import truth_cards  # noqa: E402
 

@@ -60,8 +60,8 @@ import numpy as np
 import websockets
 from tqdm import tqdm
 
-from app.core.camera import Camera, Pose
-from app.core.scenes import camera_walk, render_walk, room_scene
+from app.core.geometry.camera import Camera, Pose
+from app.sim.scenes import camera_walk, render_walk, room_scene
 
 MODES = {"regions": True, "full": False}
 #: timing_ms keys shown in the split of the server's time.

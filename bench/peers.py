@@ -4,10 +4,10 @@ Every detector here is an object with
 
 * ``name`` - the row label of the benchmark table;
 * ``artwork`` - ``None`` for our own cards, else ``id -> CardArtwork``: what is printed on
-  the card when this detector is measured (``app.core.scenes.scenario_frame(..., artwork=)``
+  the card when this detector is measured (``app.sim.scenes.scenario_frame(..., artwork=)``
   then renders the same geometry and degradations with that artwork in place of ours);
 * ``available`` / ``reason`` - whether it can run here (our own detector and the blob
-  baseline need ``app/core/candidates.py`` and ``app/core/targets.py``);
+  baseline need ``app/core/detection/candidates.py`` and ``app/core/detection/targets.py``);
 * ``detect(gray) -> list[(id, points (4, 2))]`` - points in pixels (DESIGN.md convention:
   centre of the top-left pixel at (0, 0)) in the order 0 top-left, 1 top-right,
   2 bottom-right, 3 bottom-left *as printed*: our disc centres, or the four outer corners
@@ -55,7 +55,7 @@ import cv2
 import numpy as np
 
 from app.core.markers import DEFAULT_FAMILY, get_family, marker_layout
-from app.core.scenes import CARD_TEXTURE_PX, CardArtwork, FrameTruth
+from app.sim.scenes import CARD_TEXTURE_PX, CardArtwork, FrameTruth
 
 Detection = tuple[int, np.ndarray]
 
@@ -189,15 +189,15 @@ def _import(module: str) -> Any:
 
 @dataclass
 class FidoDetector(PeerDetector):
-    """Our detector: ``app.core.detector.Detector`` if present, else the learned
-    candidates (``app.core.candidates``) and ``app.core.targets.assemble_targets``."""
+    """Our detector: ``app.core.detection.detector.Detector`` if present, else the learned
+    candidates (``app.core.detection.candidates``) and ``app.core.detection.targets.assemble_targets``."""
 
     family: str = DEFAULT_FAMILY
     _detect: Any = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        candidates = _import("app.core.candidates")
-        targets = _import("app.core.targets")
+        candidates = _import("app.core.detection.candidates")
+        targets = _import("app.core.detection.targets")
         if candidates is None:
             self.available, self.reason = False, "n/a (candidates.py missing)"
             return
@@ -206,10 +206,10 @@ class FidoDetector(PeerDetector):
             return
         try:  # half-written modules must not stop the peers' rows
             classifier = candidates.load_default_classifier()
-            detector = _import("app.core.detector")
+            detector = _import("app.core.detection.detector")
             if detector is not None and hasattr(detector, "Detector"):
                 self._detect = detector.Detector(classifier, self.family).detect
-            kernels = _import("app.core.kernels")
+            kernels = _import("app.core.detection.kernels")
             if kernels is not None:
                 kernels.warm_up()  # compile (or load) now: the first timed frame would pay it
             else:
@@ -298,7 +298,7 @@ class BlobBaseline(PeerDetector):
     _assemble: Any = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        targets = _import("app.core.targets")
+        targets = _import("app.core.detection.targets")
         if targets is None or not hasattr(targets, "assemble_targets"):
             self.available, self.reason = False, "n/a (targets.py missing)"
             return

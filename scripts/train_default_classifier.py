@@ -1,6 +1,6 @@
 """Train the default disc classifier from the simulator and ship it with the package.
 
-Runs ``app.core.training.train_default(seed)`` (deterministic, ~80 s on two cores),
+Runs ``app.learning.training.train_default(seed)`` (deterministic, ~80 s on two cores),
 writes ``app/data/default_classifier.npz`` (``np.savez_compressed``, no pickle: every
 parameter as an array, the training statistics as a JSON string in a 0-d array) and
 prints the statistics as a markdown table.
@@ -23,8 +23,8 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.core.candidates import DiscClassifier  # noqa: E402
-from app.core.training import train_default  # noqa: E402
+from app.core.detection.candidates import DiscClassifier  # noqa: E402
+from app.learning.training import train_default  # noqa: E402
 
 DEFAULT_OUT = ROOT / "app" / "data" / "default_classifier.npz"
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from sqlalchemy.orm import Session
 
-from app.core.alignment import Similarity, similarity_from_points, target_origin_alignment
+from app.core.geometry import Similarity, similarity_from_points, target_origin_alignment
 from app.schemas import AlignmentRequest, AlignmentResidual, AlignmentResult, MapDocument
 from app.services import environments
 from app.services.errors import Invalid

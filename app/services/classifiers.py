@@ -13,8 +13,8 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core.adapt import adapt_classifier
-from app.core.candidates import DiscClassifier, load_default_classifier
+from app.learning.adapt import adapt_classifier
+from app.core.detection import DiscClassifier, load_default_classifier
 from app.core.imagecodec import PNG_MAGIC, decode_gray
 from app.core.markers import FAMILIES
 from app.models import Classifier, ClassifierArray
@@ -86,7 +86,7 @@ def get(session: Session, classifier_id: int) -> ClassifierOut:
 
 
 def run_training_job(context: Any) -> dict[str, Any]:
-    """Job handler: adapt a classifier to a site's own images (see ``app.core.training``)."""
+    """Job handler: adapt a classifier to a site's own images (see ``app.learning.training``)."""
     params = context.params
     image_dir = Path(params["upload_dir"])
     with context.sessions() as session:

@@ -9,8 +9,7 @@ import numpy as np
 
 from sqlalchemy.orm import Session
 
-from app.core.candidates import MIN_SIDE
-from app.core.detector import Detection, Detector
+from app.core.detection import MIN_SIDE, Detection, Detector
 from app.core.imagecodec import ImageError, decode_gray
 from app.schemas import DetectedTargetOut, DetectResponse
 from app.services import classifiers

@@ -23,8 +23,8 @@ import numpy as np
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from app.core.camera import Camera
-from app.core.detector import Detector
+from app.core.geometry import Camera
+from app.core.detection import Detector
 from app.core.imagecodec import PNG_MAGIC, decode_gray
 from app.core.survey import SurveyError, survey
 from app.models import Environment
@@ -236,7 +236,7 @@ def run_survey_job(context: Any) -> dict[str, Any]:
     params = context.params
     with context.sessions() as session:
         # Fitted disc centres: the survey averages many views of each disc, and the
-        # centroid's small errors repeat from view to view (see app.core.disc_fit).
+        # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
         detector = Detector(classifiers.load(session, int(params["classifier_id"])), str(params["family"]),
                             fit_discs=True)
     detections = []

@@ -5,7 +5,7 @@ map (survey, import) is picked up by the next connection or ``locate`` call.
 
 A /track connection also has a memory (`TrackState`): its last two poses predict where
 the map's targets appear in the next frame, and only regions around them are searched
-(app.core.regions). The whole frame is scanned when there is no usable pose (the first
+(app.core.geometry.regions). The whole frame is scanned when there is no usable pose (the first
 frame, track lost, too many frames dropped since), when the camera changed, when the
 predicted regions would cover most of the frame anyway, every ``full_scan_every``
 frames (targets not in the map, a wrong prior), and again, at once, when a region scan
@@ -26,10 +26,20 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core.camera import Camera, Pose
-from app.core.detector import Detection, Detector
-from app.core.pose import METHODS, PoseEstimate, PoseUndetermined, TargetObservation, estimate_pose
-from app.core.regions import MapTargets, Region, RegionParams, predict_regions
+from app.core.detection import Detection, Detector
+from app.core.geometry import (
+    METHODS,
+    Camera,
+    MapTargets,
+    Pose,
+    PoseEstimate,
+    PoseUndetermined,
+    Region,
+    RegionParams,
+    TargetObservation,
+    estimate_pose,
+    predict_regions,
+)
 from app.models import Environment, SurveyMap
 from app.schemas import CameraModel, MapDocument
 from app.services import classifiers

@@ -1,0 +1,1 @@
+"""Training the disc classifier on the simulator, and adapting it to a site's images."""

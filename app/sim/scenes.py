@@ -1,0 +1,649 @@
+"""Scenes for the simulator: marker cards placed in 3D, photo-textured rooms, camera
+walks, and the ground truth of every rendered frame.
+
+Ground truth is the projection of each disc's 3D centre (not the centroid of its imaged
+ellipse), taken from the scene geometry, never from the code under test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from app.sim import degrade
+from app.core.geometry import Camera, Pose
+from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family, marker_layout, render_card
+from app.sim.render import TexturedQuad, render
+
+# Real photographs that scikit-image ships in its wheel (no download at run time).
+PHOTO_NAMES: tuple[str, ...] = (
+    "astronaut", "brick", "camera", "cat", "chelsea", "clock", "coffee", "coins", "grass",
+    "gravel", "hubble_deep_field", "immunohistochemistry", "moon", "page", "rocket", "text",
+)
+
+# A card is drawn as three flat panels split at the edges of the code area, so a bent
+# card stays a mesh of planes (each disc lies whole on one panel, its centre exact) and
+# the fold lines fall between discs and code.
+_PANEL_EDGES = (0.0, CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE, 1.0)
+# Texture side of a card: a multiple of 20 so that the panel edges fall on texel edges.
+CARD_TEXTURE_PX = 480
+# Texels by which panels overlap at a fold, so that anti-aliased edges leave no seam.
+_PANEL_OVERLAP_PX = 2
+
+
+@functools.cache
+def builtin_photos() -> tuple[np.ndarray, ...]:
+    """The bundled photographs as float32 greyscale images in [0, 1]."""
+    import skimage.data
+
+    photos = []
+    for name in PHOTO_NAMES:
+        image = np.asarray(getattr(skimage.data, name)())
+        if image.ndim == 3:
+            image = cv2.cvtColor(image[..., :3], cv2.COLOR_RGB2GRAY)
+        photos.append((image.astype(np.float32) / 255.0))
+    return tuple(photos)
+
+
+@functools.cache
+def card_texture(family: str, marker_id: int) -> np.ndarray:
+    """The card as a float32 texture (cached: a room reuses each card every frame)."""
+    card = render_card(marker_layout(family, marker_id), CARD_TEXTURE_PX)
+    texture = card.astype(np.float32) / 255.0
+    texture.setflags(write=False)
+    return texture
+
+
+def photo_mosaic(
+    photos: Sequence[np.ndarray], rows: int, cols: int, tile_px: int, rng: np.random.Generator
+) -> np.ndarray:
+    """A wall texture: random crops of random photos, tiled (clutter at many scales)."""
+    mosaic = np.empty((rows * tile_px, cols * tile_px), np.float32)
+    for r in range(rows):
+        for c in range(cols):
+            photo = photos[int(rng.integers(len(photos)))]
+            h, w = photo.shape
+            side = int(rng.integers(min(h, w) // 3, min(h, w) + 1))
+            y, x = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+            tile = cv2.resize(photo[y : y + side, x : x + side], (tile_px, tile_px), interpolation=cv2.INTER_AREA)
+            if rng.random() < 0.5:
+                tile = tile[:, ::-1]
+            mosaic[r * tile_px : (r + 1) * tile_px, c * tile_px : (c + 1) * tile_px] = tile
+    return mosaic
+
+
+@dataclass(frozen=True, eq=False)
+class CardArtwork:
+    """Other printed artwork on a card of the same size (e.g. an AprilTag or ArUco
+    marker for side-by-side benchmarks): its texture and the four reference points
+    whose projections are its ground truth, in card units."""
+
+    texture: np.ndarray
+    points_uv: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PlacedTarget:
+    """A printed card in the scene.
+
+    ``origin`` is the card's top-left corner, ``x_axis``/``y_axis`` unit vectors along
+    its top edge and down its left edge (as printed), ``normal`` points out of the
+    printed face. ``bend_m`` lifts the middle panel off the plane (paper is not flat).
+    """
+
+    id: int
+    family: str
+    size_m: float
+    origin: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    bend_m: float = 0.0
+    artwork: CardArtwork | None = None
+
+    @property
+    def normal(self) -> np.ndarray:
+        return np.cross(self.y_axis, self.x_axis)
+
+    def _offset(self, u: np.ndarray) -> np.ndarray:
+        # Panel-edge offsets along the normal: outer edges on the wall, the middle
+        # panel lifted by bend_m; piecewise linear in between (flat panels).
+        edges = np.array(_PANEL_EDGES)
+        lift = np.array([0.0, self.bend_m, self.bend_m, 0.0])
+        return np.interp(u, edges, lift)
+
+    def point(self, uv: np.ndarray) -> np.ndarray:
+        """Map coordinates of card points ``uv`` (N,2) in card units."""
+        uv = np.atleast_2d(np.asarray(uv, np.float64))
+        u, v = uv[:, 0], uv[:, 1]
+        return (
+            self.origin
+            + self.size_m * (u[:, None] * self.x_axis + v[:, None] * self.y_axis)
+            + self._offset(u)[:, None] * self.normal
+        )
+
+    @property
+    def discs(self) -> np.ndarray:
+        """3D centres of discs 0..3 (the ground truth of the map); for other artwork,
+        its reference points."""
+        if self.artwork is not None:
+            return self.point(self.artwork.points_uv)
+        return self.point(marker_layout(self.family, self.id).discs)
+
+    @property
+    def corners(self) -> np.ndarray:
+        return self.point(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64))
+
+    def quads(self) -> list[TexturedQuad]:
+        texture = card_texture(self.family, self.id) if self.artwork is None else self.artwork.texture
+        px = texture.shape[1]
+        quads = []
+        for k in range(len(_PANEL_EDGES) - 1):
+            j0 = round(_PANEL_EDGES[k] * px) - (_PANEL_OVERLAP_PX if k > 0 else 0)
+            j1 = round(_PANEL_EDGES[k + 1] * px) + (_PANEL_OVERLAP_PX if k < len(_PANEL_EDGES) - 2 else 0)
+            u0, u1 = j0 / px, j1 / px
+            # The overlap texels lie on this panel's own plane, extended past the fold.
+            lo, hi = _PANEL_EDGES[k], _PANEL_EDGES[k + 1]
+            corners_uv = np.array([[u0, 0], [u1, 0], [u1, 1], [u0, 1]], np.float64)
+            corners = self._panel_point(corners_uv, lo, hi)
+            quads.append(TexturedQuad(corners=corners, texture=texture[:, j0:j1]))
+        return quads
+
+    def _panel_point(self, uv: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        u, v = uv[:, 0], uv[:, 1]
+        o_lo, o_hi = self._offset(np.array([lo, hi]))
+        offset = o_lo + (u - lo) * (o_hi - o_lo) / (hi - lo)
+        return (
+            self.origin
+            + self.size_m * (u[:, None] * self.x_axis + v[:, None] * self.y_axis)
+            + offset[:, None] * self.normal
+        )
+
+    def to_map_target(self) -> dict[str, Any]:
+        return {"id": self.id, "discs": self.discs.round(6).tolist()}
+
+
+@dataclass(eq=False)
+class Scene:
+    """Background planes and placed targets, in map coordinates (metres)."""
+
+    background: list[TexturedQuad]
+    targets: list[PlacedTarget]
+    room_size: tuple[float, float, float] | None = None
+    _quads: list[TexturedQuad] | None = field(default=None, repr=False)
+
+    def quads(self) -> list[TexturedQuad]:
+        if self._quads is None:
+            self._quads = [*self.background, *(q for t in self.targets for q in t.quads())]
+        return self._quads
+
+    def map_document(self, camera: Camera) -> dict[str, Any]:
+        """The true map in DESIGN.md's format."""
+        return {
+            "frame": "world",
+            "units": "m",
+            "camera": camera.to_dict(),
+            "targets": [t.to_map_target() for t in sorted(self.targets, key=lambda t: t.id)],
+            "rms_px": 0.0,
+            "survey_job_id": None,
+        }
+
+
+def _frame_of(point: np.ndarray, inward: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Right and down unit vectors of a surface seen from the side ``inward`` points to."""
+    right = np.cross(up, inward)
+    right /= np.linalg.norm(right)
+    down = -np.cross(inward, right)
+    return right, down
+
+
+def _plane_quad(centre: np.ndarray, inward: np.ndarray, up: np.ndarray, width: float, height: float,
+                texture: np.ndarray) -> TexturedQuad:
+    right, down = _frame_of(centre, inward, up)
+    top_left = centre - right * width / 2 - down * height / 2
+    corners = np.array([
+        top_left,
+        top_left + right * width,
+        top_left + right * width + down * height,
+        top_left + down * height,
+    ])
+    return TexturedQuad(corners=corners, texture=texture)
+
+
+# --- rooms --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Wall:
+    centre: np.ndarray
+    inward: np.ndarray
+    up: np.ndarray
+    width: float
+    height: float
+
+
+def room_walls(size: tuple[float, float, float]) -> list[Wall]:
+    """The six faces of a box room [0,W]x[0,D]x[0,H] (z up), seen from inside."""
+    w, d, h = size
+    z = np.array([0.0, 0.0, 1.0])
+    y = np.array([0.0, 1.0, 0.0])
+    return [
+        Wall(np.array([w / 2, 0, h / 2]), np.array([0.0, 1, 0]), z, w, h),
+        Wall(np.array([w / 2, d, h / 2]), np.array([0.0, -1, 0]), z, w, h),
+        Wall(np.array([0, d / 2, h / 2]), np.array([1.0, 0, 0]), z, d, h),
+        Wall(np.array([w, d / 2, h / 2]), np.array([-1.0, 0, 0]), z, d, h),
+        Wall(np.array([w / 2, d / 2, 0]), np.array([0.0, 0, 1]), y, w, d),  # floor
+        Wall(np.array([w / 2, d / 2, h]), np.array([0.0, 0, -1]), y, w, d),  # ceiling
+    ]
+
+
+def room_scene(
+    rng: np.random.Generator,
+    size: tuple[float, float, float] = (8.0, 6.0, 3.0),
+    n_targets: int = 30,
+    marker_size_m: float = 0.2,
+    family: str = DEFAULT_FAMILY,
+    max_bend_m: float = 0.004,
+    photos: Sequence[np.ndarray] | None = None,
+) -> Scene:
+    """A box room with photo-textured walls, floor and ceiling and ``n_targets`` cards
+    at random places, heights and rotations on the four walls."""
+    photos = photos if photos is not None else builtin_photos()
+    walls = room_walls(size)
+    background = []
+    for wall in walls:
+        tile_m = 0.75
+        rows = max(1, round(wall.height / tile_m))
+        cols = max(1, round(wall.width / tile_m))
+        texture = photo_mosaic(photos, rows, cols, 192, rng)
+        background.append(_plane_quad(wall.centre, wall.inward, wall.up, wall.width, wall.height, texture))
+
+    targets: list[PlacedTarget] = []
+    side_walls = walls[:4]
+    perimeter = np.array([wall.width for wall in side_walls])
+    attempts = 0
+    while len(targets) < n_targets:
+        attempts += 1
+        if attempts > 10000:
+            raise ValueError(f"cannot place {n_targets} targets of {marker_size_m} m in a {size} room")
+        wall = side_walls[int(rng.choice(4, p=perimeter / perimeter.sum()))]
+        right, down = _frame_of(wall.centre, wall.inward, wall.up)
+        margin = marker_size_m
+        a = rng.uniform(-wall.width / 2 + margin, wall.width / 2 - margin)
+        height = rng.uniform(0.7, min(wall.height - 0.3, 2.3))
+        # 2 mm off the wall; the bend lifts the middle further out (a card stuck on a wall
+        # cannot bend into it, and a panel behind the wall would vanish).
+        centre = wall.centre + right * a + wall.up * (height - wall.height / 2) + wall.inward * 0.002
+        if any(np.linalg.norm(centre - (t.point(np.array([[0.5, 0.5]]))[0])) < 1.6 * marker_size_m for t in targets):
+            continue
+        roll = rng.uniform(-np.pi, np.pi)
+        x_axis = np.cos(roll) * right + np.sin(roll) * down
+        y_axis = -np.sin(roll) * right + np.cos(roll) * down
+        origin = centre - marker_size_m / 2 * (x_axis + y_axis)
+        targets.append(
+            PlacedTarget(
+                id=len(targets), family=family, size_m=marker_size_m, origin=origin,
+                x_axis=x_axis, y_axis=y_axis, bend_m=float(rng.uniform(0.0, max_bend_m)),
+            )
+        )
+    return Scene(background=background, targets=targets, room_size=size)
+
+
+def _smooth_path(rng: np.random.Generator, n_frames: int, n_knots: int, low: np.ndarray,
+                 high: np.ndarray) -> np.ndarray:
+    knots = rng.uniform(low, high, size=(n_knots, 3))
+    spline = CubicSpline(np.linspace(0, 1, n_knots), knots, bc_type="natural")
+    return spline(np.linspace(0, 1, n_frames))
+
+
+def camera_walk(
+    rng: np.random.Generator,
+    room_size: tuple[float, float, float],
+    n_frames: int,
+    kind: str = "calibration",
+) -> list[Pose]:
+    """A smooth hand-held walk through a room.
+
+    ``calibration``: two loops around the room looking outward at the walls, at two
+    heights, so every wall is seen from widely spaced viewpoints (as the paper asks of a
+    survey video). ``tracking``: a random smooth path looking at random wall points.
+    """
+    w, d, h = room_size
+    centre = np.array([w / 2, d / 2, 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    poses = []
+    if kind == "calibration":
+        # Two loops near the walls looking across the room, at two heights, swinging
+        # left and right: every wall is seen from far, from widely spaced viewpoints.
+        s = np.linspace(0, 1, n_frames)
+        angle = 4 * np.pi * s + rng.uniform(0, 2 * np.pi)
+        radius = 0.8 + 0.1 * np.sin(6 * np.pi * s)
+        eye = np.stack([
+            centre[0] + radius * (w / 2 - 0.6) * np.cos(angle),
+            centre[1] + radius * (d / 2 - 0.6) * np.sin(angle),
+            1.5 - 0.2 * np.cos(2 * np.pi * s) + 0.1 * np.sin(10 * np.pi * s),
+        ], axis=1)
+        yaw = angle + np.pi + 0.9 * np.sin(7 * np.pi * s)
+        look = eye + np.stack([np.cos(yaw), np.sin(yaw), 0.1 * np.sin(5 * np.pi * s)], axis=1)
+    elif kind == "tracking":
+        knots = max(4, n_frames // 40)
+        eye = _smooth_path(rng, n_frames, knots, np.array([1.5, 1.5, 1.1]), np.array([w - 1.5, d - 1.5, 1.9]))
+        look = _smooth_path(rng, n_frames, knots, np.array([-2.0, -2.0, 0.6]), np.array([w + 2.0, d + 2.0, 2.2]))
+        # Keep the gaze at least 1 m ahead so the view direction never degenerates.
+        gaze = look - eye
+        gaze[:, 2] *= 0.3
+        norm = np.linalg.norm(gaze, axis=1, keepdims=True)
+        look = eye + gaze / np.maximum(norm, 1e-9)
+    else:
+        raise ValueError(f"unknown walk kind {kind!r}: calibration or tracking")
+    for e, t in zip(eye, look, strict=True):
+        poses.append(Pose.look_at(e, t, up))
+    return poses
+
+
+# --- single frames ------------------------------------------------------------------
+
+
+def single_frame_scene(
+    rng: np.random.Generator,
+    camera: Camera,
+    n_targets: int = 1,
+    distance_m: tuple[float, float] = (0.8, 3.0),
+    tilt_deg: tuple[float, float] = (0.0, 60.0),
+    marker_size_m: float = 0.15,
+    family: str = DEFAULT_FAMILY,
+    ids: Sequence[int] | None = None,
+    photos: Sequence[np.ndarray] | None = None,
+    clutter_tiles: tuple[int, int] = (3, 4),
+) -> Scene:
+    """Cards at a given distance, tilt and roll in front of a camera at the origin
+    (identity pose: looking along +z, y down), over a photo background plane."""
+    photos = photos if photos is not None else builtin_photos()
+    if ids is not None and len(ids) != n_targets:
+        raise ValueError("ids must list n_targets ids")
+    chosen = list(ids) if ids is not None else [int(i) for i in rng.permutation(len(get_family(family)))[:n_targets]]
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    cx, cy = camera.K[0, 2], camera.K[1, 2]
+    far = distance_m[1] * rng.uniform(1.3, 3.0)
+    half_w = (camera.width / 2) / fx * far * 1.3
+    half_h = (camera.height / 2) / fy * far * 1.3
+    rows, cols = clutter_tiles
+    texture = photo_mosaic(photos, rows, cols, max(64, 1024 // cols), rng)
+    background = [
+        _plane_quad(np.array([0.0, 0.0, far]), np.array([0.0, 0.0, -1.0]), np.array([0.0, -1.0, 0.0]),
+                    2 * half_w, 2 * half_h, texture)
+    ]
+    targets: list[PlacedTarget] = []
+    attempts = 0
+    while len(targets) < n_targets:
+        attempts += 1
+        if attempts > 2000:
+            raise ValueError("cannot fit the requested targets into the view")
+        z = rng.uniform(*distance_m)
+        margin = 0.75 * marker_size_m * max(fx, fy) / z
+        u = rng.uniform(margin, camera.width - 1 - margin) if camera.width > 2 * margin else cx
+        v = rng.uniform(margin, camera.height - 1 - margin) if camera.height > 2 * margin else cy
+        centre = np.array([(u - cx) / fx * z, (v - cy) / fy * z, z])
+        if any(np.linalg.norm(centre - t.point(np.array([[0.5, 0.5]]))[0]) < 1.5 * marker_size_m for t in targets):
+            continue
+        tilt = np.deg2rad(rng.uniform(*tilt_deg))
+        tilt_axis = rng.uniform(0, np.pi)
+        roll = rng.uniform(-np.pi, np.pi)
+        # Start facing the camera (normal -z), roll in the card plane, then tilt.
+        x0 = np.array([np.cos(roll), np.sin(roll), 0.0])
+        y0 = np.array([-np.sin(roll), np.cos(roll), 0.0])
+        axis = np.array([np.cos(tilt_axis), np.sin(tilt_axis), 0.0])
+        rot, _ = cv2.Rodrigues(axis * tilt)
+        x_axis, y_axis = rot @ x0, rot @ y0
+        origin = centre - marker_size_m / 2 * (x_axis + y_axis)
+        targets.append(PlacedTarget(id=chosen[len(targets)], family=family, size_m=marker_size_m,
+                                    origin=origin, x_axis=x_axis, y_axis=y_axis))
+    return Scene(background=background, targets=targets)
+
+
+# --- ground truth and rendering -----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TargetTruth:
+    id: int
+    discs_px: np.ndarray  # (4,2) projections of the 3D disc centres
+    disc_visible: np.ndarray  # (4,) in front, inside the image, facing the camera, not occluded
+    distance_m: float
+    facing_cos: float  # cosine between the card normal and the direction to the camera
+    disc_diameter_px: float  # approximate imaged disc diameter
+    occluded: bool = False
+
+    @property
+    def visible(self) -> bool:
+        return bool(self.disc_visible.all())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "discs_px": self.discs_px.round(4).tolist(),
+            "disc_visible": self.disc_visible.tolist(),
+            "visible": self.visible,
+            "distance_m": round(self.distance_m, 4),
+            "facing_cos": round(self.facing_cos, 4),
+            "disc_diameter_px": round(self.disc_diameter_px, 3),
+            "occluded": self.occluded,
+        }
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    pose: Pose
+    camera: Camera
+    targets: list[TargetTruth]
+    degradation: dict[str, Any]
+
+    def visible_targets(self) -> list[TargetTruth]:
+        return [t for t in self.targets if t.visible]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "R": self.pose.R.round(9).tolist(),
+            "t": self.pose.t.round(9).tolist(),
+            "position": self.pose.position.round(9).tolist(),
+            "targets": [t.to_dict() for t in self.targets],
+            "degradation": self.degradation,
+        }
+
+
+#: A disc is visible only if its ray lies within this multiple of the image corners'
+#: radius (Camera.in_field): 1.0 is exactly the image's rays for a radial lens; the 2%
+#: covers tangential distortion, so no disc genuinely in the image is dropped.
+_FIELD_MARGIN = 1.02
+
+
+def target_truth(camera: Camera, pose: Pose, target: PlacedTarget, border_px: float = 2.0) -> TargetTruth | None:
+    """Ground truth of one target, or None when no part of it is in front of the camera.
+
+    A disc is visible when it projects inside the image (``border_px`` in) and its ray
+    is within the lens's field: far off axis (~70 degrees for k1 = -0.12) the distortion
+    polynomial folds points back into the image, where the renderer draws nothing.
+    """
+    discs = target.discs
+    cam = pose.transform(discs)
+    if (cam[:, 2] <= 0.01).all():
+        return None
+    in_front = cam[:, 2] > 0.01
+    uv = np.full((4, 2), np.nan)
+    uv[in_front] = camera.project(cam[in_front])
+    inside = (
+        in_front
+        & camera.in_field(cam, _FIELD_MARGIN)
+        & (uv[:, 0] >= border_px) & (uv[:, 0] <= camera.width - 1 - border_px)
+        & (uv[:, 1] >= border_px) & (uv[:, 1] <= camera.height - 1 - border_px)
+    )
+    centre = discs.mean(axis=0)
+    to_camera = pose.position - centre
+    distance = float(np.linalg.norm(to_camera))
+    facing = float(np.dot(target.normal, to_camera) / max(distance, 1e-12))
+    radius_m = marker_layout(target.family, target.id).disc_radius * target.size_m
+    z = float(np.mean(cam[in_front, 2]))
+    diameter = 2 * radius_m * float(camera.K[0, 0]) / max(z, 1e-6)
+    return TargetTruth(
+        id=target.id,
+        discs_px=uv,
+        disc_visible=inside & (facing > 0.05),
+        distance_m=distance,
+        facing_cos=facing,
+        disc_diameter_px=diameter,
+    )
+
+
+def frame_truth(camera: Camera, pose: Pose, scene: Scene, degradation: dict[str, Any] | None = None) -> FrameTruth:
+    truths = [t for t in (target_truth(camera, pose, target) for target in scene.targets) if t is not None]
+    return FrameTruth(pose=pose, camera=camera, targets=truths, degradation=degradation or {})
+
+
+def render_frame(
+    scene: Scene,
+    camera: Camera,
+    pose: Pose,
+    rng: np.random.Generator,
+    degradation: degrade.Degradation | None = None,
+    occlusion_probability: float = 0.0,
+    supersample: int = 2,
+) -> tuple[np.ndarray, FrameTruth]:
+    """Render one uint8 greyscale frame and its ground truth.
+
+    With ``occlusion_probability`` a visible target may be partly covered by a piece of
+    photograph; discs whose centre it covers are marked not visible.
+    """
+    image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
+    truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
+    visible = truth.visible_targets()
+    if visible and occlusion_probability > 0 and rng.random() < occlusion_probability:
+        image, truth = _occlude_one(image, truth, visible[int(rng.integers(len(visible)))], rng)
+    if degradation is not None:
+        image = degradation.apply(image, rng)
+    return degrade.to_uint8(image), truth
+
+
+def _occlude_one(image: np.ndarray, truth: FrameTruth, target: TargetTruth,
+                 rng: np.random.Generator) -> tuple[np.ndarray, FrameTruth]:
+    # A blob (hand, cable, furniture) covering one side of the card.
+    corners = target.discs_px
+    centre = corners.mean(axis=0)
+    side = int(rng.integers(4))
+    a, b = corners[side], corners[(side + 1) % 4]
+    depth = rng.uniform(0.3, 0.7)
+    inner_a = a + (corners[(side + 3) % 4] - a) * depth
+    inner_b = b + (corners[(side + 2) % 4] - b) * depth
+    outward = (a + b) / 2 - centre
+    polygon = np.array([a + outward * 0.6, b + outward * 0.6, inner_b, inner_a])
+    photos = builtin_photos()
+    patch = photos[int(rng.integers(len(photos)))]
+    image, mask = degrade.occlude(image, polygon, cv2.resize(patch, (image.shape[1], image.shape[0])))
+    targets = []
+    for t in truth.targets:
+        if t.id != target.id:
+            targets.append(t)
+            continue
+        covered = np.array([
+            mask[int(round(y)), int(round(x))] > 0.5 if np.isfinite(x) else True for x, y in t.discs_px
+        ])
+        targets.append(TargetTruth(
+            id=t.id, discs_px=t.discs_px, disc_visible=t.disc_visible & ~covered, distance_m=t.distance_m,
+            facing_cos=t.facing_cos, disc_diameter_px=t.disc_diameter_px, occluded=True,
+        ))
+    return image, FrameTruth(truth.pose, truth.camera, targets, truth.degradation)
+
+
+# --- named single-frame scenarios (training, tests, benchmarks) ---------------------
+
+
+@dataclass(frozen=True)
+class FrameScenario:
+    """How to draw one single-frame test image: targets, distances, degradations."""
+
+    name: str
+    n_targets: tuple[int, int] = (1, 3)
+    distance_m: tuple[float, float] = (0.8, 3.0)
+    tilt_deg: tuple[float, float] = (0.0, 55.0)
+    degradation: str = "default"
+    marker_size_m: float = 0.2
+    occlusion_probability: float = 0.0
+    specular_on_target: bool = False
+    clutter_tiles: tuple[int, int] = (3, 4)
+    focal_px: tuple[float, float] = (700.0, 900.0)
+
+
+SCENARIOS: dict[str, FrameScenario] = {
+    s.name: s
+    for s in (
+        FrameScenario("default"),
+        FrameScenario("far", distance_m=(4.0, 8.0), tilt_deg=(0.0, 40.0)),
+        FrameScenario("blur", degradation="blur"),
+        FrameScenario("dark", degradation="dark"),
+        FrameScenario("clutter", n_targets=(1, 2), clutter_tiles=(8, 10)),
+        FrameScenario("specular", specular_on_target=True),
+        FrameScenario("occluded", n_targets=(2, 3), occlusion_probability=1.0),
+        FrameScenario("clean", degradation="none", tilt_deg=(0.0, 0.0)),
+        FrameScenario("empty", n_targets=(0, 0)),
+        FrameScenario("full", n_targets=(1, 4), distance_m=(0.5, 6.0), tilt_deg=(0.0, 65.0), degradation="full",
+                      occlusion_probability=0.15),
+    )
+}
+
+
+def scenario_frame(
+    scenario: FrameScenario | str,
+    rng: np.random.Generator,
+    width: int = 640,
+    height: int = 480,
+    family: str = DEFAULT_FAMILY,
+    photos: Sequence[np.ndarray] | None = None,
+    artwork: Callable[[int], CardArtwork] | None = None,
+) -> tuple[np.ndarray, FrameTruth]:
+    """One rendered frame of a named scenario and its ground truth.
+
+    With ``artwork`` (target id -> CardArtwork) the cards carry other markers in exactly
+    the same places: the same seed gives the same geometry and degradations.
+    """
+    spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
+    photos = photos if photos is not None else builtin_photos()
+    camera = Camera.pinhole(float(rng.uniform(*spec.focal_px)), width, height)
+    n = int(rng.integers(spec.n_targets[0], spec.n_targets[1] + 1))
+    scene = single_frame_scene(
+        rng, camera, n_targets=n, distance_m=spec.distance_m, tilt_deg=spec.tilt_deg,
+        marker_size_m=spec.marker_size_m, family=family, photos=photos, clutter_tiles=spec.clutter_tiles,
+    )
+    if artwork is not None:
+        scene = Scene(scene.background, [dataclasses.replace(t, artwork=artwork(t.id)) for t in scene.targets])
+    degradation = degrade.PRESETS[spec.degradation].sample(rng)
+    if spec.specular_on_target and scene.targets:
+        truth = target_truth(camera, Pose.identity(), scene.targets[0])
+        if truth is not None:
+            x, y = np.nanmean(truth.discs_px, axis=0)
+            spread = max(truth.disc_diameter_px, 4.0)
+            specular = degrade.Specular(
+                centre_rel=(float(x + rng.normal(0, spread)) / (width - 1), float(y + rng.normal(0, spread)) / (height - 1)),
+                radius_rel=float(rng.uniform(0.5, 1.5)) * spread / min(width, height),
+                strength=float(rng.uniform(0.4, 0.9)),
+            )
+            degradation = dataclasses.replace(degradation, specular=specular)
+    return render_frame(scene, camera, Pose.identity(), rng, degradation, spec.occlusion_probability)
+
+
+def render_walk(
+    scene: Scene,
+    camera: Camera,
+    poses: Sequence[Pose],
+    rng: np.random.Generator,
+    degradation: str = "default",
+    supersample: int = 2,
+) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+    """Frames of a camera walk, each with its own sampled degradation, and their truth."""
+    ranges = degrade.PRESETS[degradation]
+    for pose in poses:
+        yield render_frame(scene, camera, pose, rng, ranges.sample(rng), supersample=supersample)
