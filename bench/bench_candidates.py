@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import candidates as cand  # noqa: E402
-from app.core.detection import kernels  # noqa: E402
+from app.core.detection import warm_up  # noqa: E402
 from app.learning import training  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter")
@@ -151,7 +151,7 @@ def main() -> None:
     args = parser.parse_args()
     cv2.setNumThreads(1)
     classifier = cand.load_default_classifier()
-    kernels.warm_up()  # compile (or load) the detector's kernels before anything is timed
+    warm_up()  # compile (or load) the detector's kernels before anything is timed
 
     print("## Disc candidates: training\n")
     print(training_table(classifier))

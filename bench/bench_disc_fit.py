@@ -25,24 +25,20 @@ Run: ``.venv/bin/python bench/bench_disc_fit.py [--seeds 0 1] [--step 10]``
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for bench.bench_survey
-
 from app.sim import degrade
 from app.core.detection.candidates import load_default_classifier
 from app.core.detection.detector import Detector
 from app.core.detection.disc_fit import fit_disc_centres
-from app.core.detection.kernels import warm_up
-from app.sim.scenes import camera_walk, render_frame, room_scene
+from app.core.detection import warm_up
+from app.sim.examples import BENCH_CAMERA, BENCH_ROOM
+from app.sim.scenes import render_frame
 from app.core.geometry.homography import disc_axes, homographies
-from bench.bench_survey import TRUE_CAMERA
 
 BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]
 FACING_BINS = [0.3, 0.5, 0.7, 0.85, 1.01]
@@ -105,15 +101,14 @@ def main() -> None:
     fit_s, n_frames = 0.0, 0
     ranges = degrade.PRESETS["default"]
     for seed in args.seeds:
-        rng = np.random.default_rng(seed)  # bench_survey's room, walk and rendering
-        scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
-        walk = camera_walk(rng, scene.room_size, 1000, kind="calibration")[:: args.step]
+        room = BENCH_ROOM.walk(seed, 1000, kind="calibration")  # bench_survey's room, walk and rendering
+        scene, walk, rng = room.scene, room.poses[:: args.step], room.rng
         # The second noise draws have their own stream, so the first frames are render_walk's.
         noise_rng = np.random.default_rng([seed, 2])
         for pose in tqdm(walk, desc=f"room {seed}", unit="frame"):
             degradation = ranges.sample(rng)
-            image, truth = render_frame(scene, TRUE_CAMERA, pose, rng, degradation)
-            again, _ = render_frame(scene, TRUE_CAMERA, pose, noise_rng, degradation)
+            image, truth = render_frame(scene, BENCH_CAMERA, pose, rng, degradation)
+            again, _ = render_frame(scene, BENCH_CAMERA, pose, noise_rng, degradation)
             n_frames += 1
             by_id = {t.id: t for t in truth.targets}
             found = [t for t in detector.detect(image).targets if t.id in by_id]

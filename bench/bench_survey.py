@@ -1,7 +1,7 @@
 """The automatic survey (paper §3 step 4, §5.1) on a simulated room, end to end.
 
-A rendered 8 x 6 x 3 m room with 30 cards (0.2 m), a hand-held calibration walk at
-640x480 (f 820 px, k1 -0.12), the real detector on every frame, then the survey. Then a
+A rendered 8 x 6 x 3 m room with 30 cards (0.2 m, `app.sim.examples.BENCH_ROOM`), a
+hand-held calibration walk at 640x480 (f 820 px, k1 -0.12), the real detector on every frame, then the survey. Then a
 second walk (``kind="tracking"``) is tracked with the surveyed map and camera and with
 the true ones (``pose.estimate_pose``, nonlinear), and the camera positions compared.
 
@@ -34,16 +34,13 @@ from app.core.geometry.alignment import similarity_from_points
 from app.core.geometry.camera import Camera
 from app.core.detection.candidates import load_default_classifier
 from app.core.detection.detector import Detector
-from app.core.detection.kernels import warm_up
+from app.core.detection import warm_up
 from app.core.geometry.pose import PoseUndetermined, TargetObservation, estimate_pose
-from app.sim.scenes import camera_walk, frame_truth, render_walk, room_scene
+from app.sim.examples import BENCH_CAMERA, BENCH_ROOM
+from app.sim.scenes import camera_walk, frame_truth, render_walk
 from app.core.survey import survey
 from app.core.detection.targets import DetectedTarget
 from app.core.geometry.homography import disc_axes
-
-TRUE_CAMERA = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
-                     np.array([-0.12, 0.0, 0.0, 0.0, 0.0]), 640, 480)
-
 
 def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: float | None = None):  # type: ignore[no-untyped-def]
     """Detections, truths and detection time of a walk: the real detector on rendered
@@ -54,13 +51,13 @@ def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: flo
     frames, truths, detect_s = [], [], 0.0
     if ideal_px is not None:
         for pose in poses:
-            truth = frame_truth(TRUE_CAMERA, pose, scene)
+            truth = frame_truth(BENCH_CAMERA, pose, scene)
             frames.append([DetectedTarget(t.id, t.discs_px + rng.normal(0.0, ideal_px, (4, 2)), 1.0)
                            for t in truth.targets
                            if t.visible and t.facing_cos > 0.3 and t.disc_diameter_px > 4.0])
             truths.append(truth)
         return frames, truths, detect_s
-    for image, truth in tqdm(render_walk(scene, TRUE_CAMERA, poses, rng), total=len(poses), desc=desc,
+    for image, truth in tqdm(render_walk(scene, BENCH_CAMERA, poses, rng), total=len(poses), desc=desc,
                              unit="frame", leave=False):
         start = time.perf_counter()
         frames.append(detector.detect(image).targets)
@@ -128,9 +125,8 @@ def run_room(seed: int, n_frames: int, n_tracking: int, card_prior_mm: float,
     (a, c) the survey gets the calibration walk's detections at the noise floor
     (`_at_noise_floor`), once per noise draw (`draws`: a result each); the tracking walk
     is detected as usual."""
-    rng = np.random.default_rng(seed)
-    scene = room_scene(rng, size=(8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
-    walk = camera_walk(rng, scene.room_size, n_frames, kind="calibration")
+    room = BENCH_ROOM.walk(seed, n_frames, kind="calibration")
+    scene, walk, rng = room.scene, room.poses, room.rng
     frames, walk_truths, detect_s = _detect_walk(survey_detector, scene, walk, rng,
                                                  f"seed {seed}: calibration walk", ideal_px)
     # The tracking walk has its own random stream: the same walk (and rendering) whatever
@@ -172,12 +168,12 @@ def _survey_room(seed: int, scene, frames, detect_s: float, t_frames, t_truths, 
     # Same frames, same detections, same targets (those the survey mapped) in both runs:
     # the comparison is of map + camera quality, not coverage. Each run uses its own
     # camera (the true one with the true map, the surveyed one with the surveyed map).
-    e_true = _track(t_frames, t_truths, {i: truth[i] for i in surveyed}, TRUE_CAMERA, lambda p: p)
+    e_true = _track(t_frames, t_truths, {i: truth[i] for i in surveyed}, BENCH_CAMERA, lambda p: p)
     # The surveyed map is in the survey frame: its poses are mapped into the world
     # through the similarity fitted between surveyed and true discs (scale ~1: metric).
     e_surv = _track(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
     # Isolates the map: the surveyed map with the true camera.
-    e_map = _track(t_frames, t_truths, surveyed, TRUE_CAMERA, similar.apply_pose)
+    e_map = _track(t_frames, t_truths, surveyed, BENCH_CAMERA, similar.apply_pose)
     both = np.isfinite(e_true) & np.isfinite(e_surv) & np.isfinite(e_map)
     n_seen = np.array([sum(t.id in surveyed for t in f) for f in t_frames])
 

@@ -2,7 +2,8 @@
 client (the `websockets` package) against a running ``fidotrack serve``, streaming a
 rendered 640x480 room sequence.
 
-The room (8 x 6 x 3 m, 30 cards of 0.2 m, f = 820 px, k1 = -0.12) is rendered along a
+The bench room (`app.sim.examples.BENCH_ROOM`: 8 x 6 x 3 m, 30 cards of 0.2 m, f = 820 px,
+k1 = -0.12) is rendered along a
 tracking walk; its true map is PUT into a fresh environment. Every run is made twice on
 the same server, once per mode, set by the client's config message:
 
@@ -60,8 +61,9 @@ import numpy as np
 import websockets
 from tqdm import tqdm
 
-from app.core.geometry.camera import Camera, Pose
-from app.sim.scenes import camera_walk, render_walk, room_scene
+from app.core.geometry.camera import Pose
+from app.sim.examples import BENCH_ROOM
+from app.sim.scenes import render_walk
 
 MODES = {"regions": True, "full": False}
 #: timing_ms keys shown in the split of the server's time.
@@ -269,11 +271,8 @@ def main() -> None:
                         help="extra environment for the server (e.g. OPENBLAS_NUM_THREADS=1); repeatable")
     args = parser.parse_args()
 
-    rng = np.random.default_rng(args.seed)
-    scene = room_scene(rng, (8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
-    camera = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]), np.array([-0.12, 0.0, 0, 0, 0]),
-                    640, 480)
-    poses = camera_walk(rng, scene.room_size, args.frames, kind="tracking")
+    room = BENCH_ROOM.walk(args.seed, args.frames, kind="tracking")
+    scene, poses, rng, camera = room.scene, room.poses, room.rng, BENCH_ROOM.camera
     frames: list[bytes] = []
     for image, _ in tqdm(render_walk(scene, camera, poses, rng, degradation="default"), total=len(poses),
                          desc="rendering", unit="frame"):

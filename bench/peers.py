@@ -54,16 +54,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.core.markers import DEFAULT_FAMILY, get_family, marker_layout
-from app.sim.scenes import CARD_TEXTURE_PX, CardArtwork, FrameTruth
+from app.core.markers import DEFAULT_FAMILY, get_family
+from app.sim.scenes import CARD_TEXTURE_PX, CardArtwork
+# A tag's black square spans the outer extent of our discs across the card (0.075..0.925).
+from app.sim.truth import FOOTPRINT_HI as TAG_HI, FOOTPRINT_LO as TAG_LO, FOOTPRINT_UV as TAG_CORNERS_UV
+from app.sim.truth import TruthCard, truth_cards  # noqa: F401  (the benchmark's truth, here with the peers)
 
 Detection = tuple[int, np.ndarray]
-
-#: The outer extent of our discs across the card (0.2 - 0.125 .. 0.8 + 0.125): a tag's
-#: black square occupies exactly this span.
-TAG_LO, TAG_HI = 0.075, 0.925
-TAG_CORNERS_UV = np.array([[TAG_LO, TAG_LO], [TAG_HI, TAG_LO], [TAG_HI, TAG_HI], [TAG_LO, TAG_HI]], np.float64)
-TAG_CORNERS_UV.setflags(write=False)
 
 N_IDS = len(get_family(DEFAULT_FAMILY))  # 60: every id a fido3x3 scene may draw
 
@@ -209,7 +206,7 @@ class FidoDetector(PeerDetector):
             detector = _import("app.core.detection.detector")
             if detector is not None and hasattr(detector, "Detector"):
                 self._detect = detector.Detector(classifier, self.family).detect
-            kernels = _import("app.core.detection.kernels")
+            kernels = _import("app.core.detection")
             if kernels is not None:
                 kernels.warm_up()  # compile (or load) now: the first timed frame would pay it
             else:
@@ -321,66 +318,3 @@ def all_detectors(family: str = DEFAULT_FAMILY) -> list[PeerDetector]:
         ArucoDetector("ArUco 4x4, default (no refine)", aruco_artwork, refinement="none"),
         ArucoDetector("ArUco 4x4, subpix refine", aruco_artwork, refinement="subpix"),
     ]
-
-
-# --------------------------------------------------------------------------------------
-# Ground truth per card (shared by the benchmark and the tests)
-# --------------------------------------------------------------------------------------
-
-BORDER_PX = 2.0  # as the simulator's visibility test
-UNIT_SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
-
-
-@dataclass(frozen=True)
-class TruthCard:
-    id: int
-    points: np.ndarray  # (4, 2) true reference points (px)
-    counted: bool  # visible, and not covered by a nearer card
-    centre: np.ndarray  # card centre (px)
-    side_px: float  # mean side of the imaged card (px)
-    disc_px: float
-
-
-def _points_uv(artwork: Callable | None, marker_id: int) -> np.ndarray:
-    if artwork is None:
-        return np.asarray(marker_layout(DEFAULT_FAMILY, marker_id).discs, np.float64)
-    return np.asarray(artwork(marker_id).points_uv, np.float64)
-
-
-def truth_cards(truth: FrameTruth, artwork: Callable | None) -> list[TruthCard]:
-    """The frame's true targets, with the card outline recovered from the reference
-    points (the cards of these scenes are flat) to find cards hidden behind nearer ones:
-    the simulator's ``visible`` does not look at other cards.
-
-    A target is counted when the simulator calls it visible, the square 0.075..0.925 of
-    the card (a tag's black square, our discs' outer extent) lies inside the image, and
-    no nearer card overlaps that square. The test is the same whatever the artwork, so
-    every detector is counted on the same targets."""
-    size = np.array([truth.camera.width, truth.camera.height], np.float64)
-    geo = []
-    for t in truth.targets:
-        if not np.isfinite(t.discs_px).all():
-            geo.append(None)
-            continue
-        h = cv2.getPerspectiveTransform(_points_uv(artwork, t.id).astype(np.float32), t.discs_px.astype(np.float32))
-        card = cv2.perspectiveTransform(UNIT_SQUARE[None], h)[0]
-        inner = cv2.perspectiveTransform(TAG_CORNERS_UV[None], h)[0]
-        geo.append((card, inner))
-    cards = []
-    for i, t in enumerate(truth.targets):
-        g = geo[i]
-        if g is None:
-            cards.append(TruthCard(t.id, t.discs_px, False, np.array([np.nan, np.nan]), 0.0, t.disc_diameter_px))
-            continue
-        card, inner = g
-        covered = False
-        for j, other in enumerate(truth.targets):
-            if j == i or geo[j] is None or other.distance_m >= t.distance_m:
-                continue
-            area, _ = cv2.intersectConvexConvex(inner.astype(np.float32), geo[j][0].astype(np.float32))
-            covered |= area > 0
-        side = float(np.mean(np.linalg.norm(card - np.roll(card, -1, axis=0), axis=1)))
-        inside = bool(((inner >= BORDER_PX) & (inner <= size - 1 - BORDER_PX)).all())
-        cards.append(TruthCard(t.id, t.discs_px, bool(t.visible and inside and not covered), card.mean(axis=0), side,
-                               t.disc_diameter_px))
-    return cards

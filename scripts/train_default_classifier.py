@@ -23,7 +23,7 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.core.detection.candidates import DiscClassifier  # noqa: E402
+from app.core.detection import DiscClassifier  # noqa: E402
 from app.learning.training import train_default  # noqa: E402
 
 DEFAULT_OUT = ROOT / "app" / "data" / "default_classifier.npz"

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+__all__ = ["JPEG_MAGIC", "MAX_JPEG_SCANS", "PNG_MAGIC", "ImageError", "ImageHeader", "decode_gray", "read_header"]
+
 JPEG_MAGIC = b"\xff\xd8\xff"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # Most scans a JPEG may have. Baseline files have 1 (or one per component), the standard
@@ -27,7 +29,15 @@ _SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD
 
 
 class ImageError(ValueError):
-    """The bytes are not an image this service decodes; ``kind`` says why."""
+    """The bytes are not an image this service decodes.
+
+    Parameters
+    ----------
+    kind : str
+        Why: "unsupported", "corrupt", "too_large" or "empty".
+    message : str
+        A message for the user.
+    """
 
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)
@@ -36,13 +46,42 @@ class ImageError(ValueError):
 
 @dataclass(frozen=True)
 class ImageHeader:
+    """What an image's header declares.
+
+    Attributes
+    ----------
+    format : str
+        "jpeg" or "png".
+    width, height : int
+        Declared size, pixels.
+    """
+
     format: str  # "jpeg" or "png"
     width: int
     height: int
 
 
 def read_header(data: bytes) -> ImageHeader:
-    """Format and size from the header alone, without decoding pixels."""
+    """Format and size from the header alone, without decoding pixels.
+
+    The structure is checked on the way: a PNG's chunks must fit in the file and end
+    with IEND; a JPEG must end with its end-of-image marker and have at most
+    `MAX_JPEG_SCANS` scans.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's bytes.
+
+    Returns
+    -------
+    ImageHeader
+
+    Raises
+    ------
+    ImageError
+        If the data is empty, not a JPEG or PNG, truncated or corrupt.
+    """
     if not data:
         raise ImageError("empty", "the image is empty (0 bytes)")
     if data.startswith(PNG_MAGIC):
@@ -101,10 +140,28 @@ def _jpeg_header(data: bytes) -> ImageHeader:
 
 
 def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarray:
-    """Decode a JPEG or PNG to uint8 greyscale (HxW).
+    """Decode a JPEG or PNG to 8-bit greyscale.
 
-    Greyscale, colour, 4-channel and 16-bit images are accepted and converted. Raises
-    ``ImageError`` for anything else, and for images over ``max_pixels`` before decoding.
+    Greyscale, colour, 4-channel and 16-bit images are accepted and converted; EXIF
+    orientation is ignored.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's bytes.
+    max_pixels : int
+        Largest width * height accepted, checked on the header before decoding.
+    max_side : int, optional
+        Largest width or height accepted.
+
+    Returns
+    -------
+    (height, width) ndarray of uint8
+
+    Raises
+    ------
+    ImageError
+        For anything else, and for images over the limits (before decoding).
     """
     header = read_header(data)
     if header.width <= 0 or header.height <= 0:

@@ -3,7 +3,8 @@
 A target is a square white card with four black discs at the corners of a smaller
 square and an n x n binary identification code in the middle (Claus & Fitzgibbon,
 WACV 2005, section 3). Everything here is in card units: the card spans 0..1, origin
-at its top-left corner, x to the right, y down (DESIGN.md, "Marker contract").
+at its top-left corner, x to the right, y down (docs/map-format.md). Discs are numbered
+0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left as printed.
 
 Pure numpy/OpenCV; no I/O.
 """
@@ -17,6 +18,24 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+__all__ = [
+    "CODE_ORIGIN",
+    "CODE_SIZE",
+    "DEFAULT_FAMILY",
+    "DISC_CENTRES",
+    "DISC_RADIUS",
+    "FAMILIES",
+    "MarkerFamily",
+    "MarkerLayout",
+    "card_svg",
+    "code_outline",
+    "get_family",
+    "marker_layout",
+    "min_rotation_distance",
+    "parse_id_list",
+    "render_card",
+]
 
 # --------------------------------------------------------------------------------------
 # Card layout (card units).
@@ -38,11 +57,13 @@ DISC_CENTRES: np.ndarray = np.array(
     [[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]], dtype=np.float64
 )
 DISC_CENTRES.setflags(write=False)
+#: Disc radius, card units.
 DISC_RADIUS: float = 0.125
 #: Top-left corner (x and y) of the code area, and its side.
 CODE_ORIGIN: float = 0.35
 CODE_SIZE: float = 0.30
 
+#: The code families, by name.
 FAMILIES: tuple[str, ...] = ("fido3x3", "fido4x4")
 DEFAULT_FAMILY: str = "fido3x3"
 
@@ -64,7 +85,20 @@ _MAX_ID_LIST = 1000
 
 @dataclass(frozen=True, eq=False)  # eq=False: ndarray fields make generated __eq__ useless
 class MarkerFamily:
-    """A set of n x n binary codes, unambiguous under the four card rotations."""
+    """A set of n x n binary codes, unambiguous under the four card rotations.
+
+    Attributes
+    ----------
+    name : str
+        One of `FAMILIES`.
+    cells : int
+        Cells per side of the code, n.
+    min_distance : int
+        Least Hamming distance between any two codes in any rotation, and between a
+        code and its own rotations.
+    codes : (N, n, n) ndarray of uint8
+        The codes, read-only; a black cell is 1; code i belongs to target id i.
+    """
 
     name: str
     cells: int
@@ -75,7 +109,23 @@ class MarkerFamily:
         return int(self.codes.shape[0])
 
     def code(self, marker_id: int) -> np.ndarray:
-        """The (n, n) read-only code of `marker_id`; KeyError outside 0..N-1."""
+        """The code of one target.
+
+        Parameters
+        ----------
+        marker_id : int
+            Target id, 0..N-1.
+
+        Returns
+        -------
+        (n, n) ndarray of uint8
+            Read-only; rows top to bottom as printed upright, black = 1.
+
+        Raises
+        ------
+        KeyError
+            If `marker_id` is not an integer in 0..N-1.
+        """
         i = _as_id(marker_id)
         if i is None or not 0 <= i < len(self):
             raise KeyError(f"marker id {marker_id!r} not in family {self.name} (0..{len(self) - 1})")
@@ -140,7 +190,22 @@ def _lexicode(n: int, d: int) -> np.ndarray:
 
 @functools.cache
 def get_family(name: str) -> MarkerFamily:
-    """The code family called `name` (see FAMILIES); KeyError for unknown names."""
+    """The code family called `name` (built once, then cached).
+
+    Parameters
+    ----------
+    name : str
+        One of `FAMILIES`.
+
+    Returns
+    -------
+    MarkerFamily
+
+    Raises
+    ------
+    KeyError
+        If the family is unknown.
+    """
     if name not in _FAMILY_PARAMS:
         raise KeyError(f"unknown marker family {name!r}; known: {', '.join(FAMILIES)}")
     n, d = _FAMILY_PARAMS[name]
@@ -153,6 +218,21 @@ def min_rotation_distance(codes: np.ndarray) -> int:
 
     Independent of the search in `_lexicode` (plain np.rot90 and pairwise comparison),
     so tests can check the property rather than trust the construction.
+
+    Parameters
+    ----------
+    codes : (N, n, n) array_like
+        Binary codes.
+
+    Returns
+    -------
+    int
+        The least distance, in cells (n * n + 1 when there is nothing to compare).
+
+    Raises
+    ------
+    ValueError
+        If `codes` is not (N, n, n).
     """
     codes = np.asarray(codes, dtype=np.uint8)
     if codes.ndim != 3 or codes.shape[1] != codes.shape[2]:
@@ -178,7 +258,22 @@ def min_rotation_distance(codes: np.ndarray) -> int:
 
 @dataclass(frozen=True, eq=False)
 class MarkerLayout:
-    """Geometry of one card in card units (DESIGN.md "Marker contract")."""
+    """Geometry of one card in card units (0..1, origin top-left, x right, y down).
+
+    Attributes
+    ----------
+    id : int
+        Target id.
+    family : str
+        Code family name.
+    discs : (4, 2) ndarray
+        Disc centres in disc order: 0 top-left, 1 top-right, 2 bottom-right,
+        3 bottom-left as printed.
+    disc_radius : float
+        Disc radius, card units.
+    code : (n, n) ndarray of uint8
+        The identification code, rows top to bottom as printed upright; black = 1.
+    """
 
     id: int
     family: str
@@ -187,7 +282,14 @@ class MarkerLayout:
     code: np.ndarray  # (n, n) uint8, rows top to bottom as printed upright; black = 1
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document of GET /markers/{id}, with plain Python types."""
+        """The JSON document of GET /markers/{id}.
+
+        Returns
+        -------
+        dict
+            ``id``, ``family``, ``discs``, ``disc_radius`` and ``code``, as plain
+            Python types.
+        """
         return {
             "id": int(self.id),
             "family": str(self.family),
@@ -198,11 +300,29 @@ class MarkerLayout:
 
     @property
     def cells(self) -> int:
+        """Cells per side of the code."""
         return int(self.code.shape[0])
 
 
 def marker_layout(family: str, marker_id: int) -> MarkerLayout:
-    """Layout of `marker_id` in `family`; KeyError for unknown family or id."""
+    """The layout of one target's card.
+
+    Parameters
+    ----------
+    family : str
+        One of `FAMILIES`.
+    marker_id : int
+        Target id within the family.
+
+    Returns
+    -------
+    MarkerLayout
+
+    Raises
+    ------
+    KeyError
+        If the family or the id is unknown.
+    """
     fam = get_family(family)
     code = fam.code(marker_id)
     return MarkerLayout(
@@ -220,8 +340,17 @@ def code_outline(code: np.ndarray) -> list[list[tuple[float, float]]]:
     Each cell contributes its four edges clockwise (in y-down coordinates); edges shared
     by two black cells cancel. What remains is the boundary of the union: outer loops
     clockwise, holes counter-clockwise, so a single path filled with the non-zero rule
-    draws the code with no seams between touching cells (SVG, PDF). Only corners are
-    listed; the first point is not repeated at the end.
+    draws the code with no seams between touching cells (SVG, PDF).
+
+    Parameters
+    ----------
+    code : (n, n) array_like
+        A code, black = 1.
+
+    Returns
+    -------
+    list of list of (float, float)
+        The loops' corners in card units; the first point is not repeated at the end.
     """
     code = np.asarray(code)
     n = code.shape[0]
@@ -281,14 +410,29 @@ _SUPERSAMPLE = 16  # sub-samples per axis on disc boundary pixels: 256 coverage 
 
 
 def render_card(layout: MarkerLayout, px: int) -> np.ndarray:
-    """The card as a px x px uint8 greyscale image (white 255, black 0).
+    """The card as a greyscale image (white 255, black 0).
 
-    The card edges are the image edges; pixel centres follow DESIGN.md (centre of the
-    top-left pixel at (0, 0)), so card unit x is at pixel x * px - 0.5. Grey levels are
-    the area coverage of each pixel: exact for the code cells (axis-aligned rectangles),
-    16x16 supersampled on the boundary pixels of the discs. That keeps each disc's
-    intensity-weighted centroid on its layout centre to ~1e-3 px (~1e-2 px when the
-    disc is only a few pixels across) and its summed darkness within 0.1% of pi r^2.
+    The card edges are the image edges; the centre of the top-left pixel is at (0, 0),
+    so card unit x is at pixel x * px - 0.5. Grey levels are the area coverage of each
+    pixel: exact for the code cells (axis-aligned rectangles), 16x16 supersampled on the
+    boundary pixels of the discs. That keeps each disc's intensity-weighted centroid on
+    its layout centre to ~1e-3 px (~1e-2 px when the disc is only a few pixels across)
+    and its summed darkness within 0.1% of pi r^2.
+
+    Parameters
+    ----------
+    layout : MarkerLayout
+    px : int
+        Side of the image in pixels, 8..8192.
+
+    Returns
+    -------
+    (px, px) ndarray of uint8
+
+    Raises
+    ------
+    ValueError
+        If `px` is not an integer in 8..8192.
     """
     if isinstance(px, bool) or not isinstance(px, (int, np.integer)):
         raise ValueError(f"px must be an integer, got {px!r}")
@@ -366,10 +510,26 @@ def _fmt(v: float) -> str:
 
 
 def card_svg(layout: MarkerLayout, size: str = "100mm") -> str:
-    """A standalone SVG document of the card, `size` wide and high (e.g. "100mm").
+    """A standalone SVG document of the card.
 
-    The code is one path outlining the union of its black cells (see code_outline), so
-    touching cells show no hairline seams in any renderer.
+    The code is one path outlining the union of its black cells (see `code_outline`),
+    so touching cells show no hairline seams in any renderer.
+
+    Parameters
+    ----------
+    layout : MarkerLayout
+    size : str, optional
+        Width and height of the document, a length such as "100mm" or "4in".
+
+    Returns
+    -------
+    str
+        The SVG document.
+
+    Raises
+    ------
+    ValueError
+        If `size` is not such a length.
     """
     if not isinstance(size, str) or not _SVG_SIZE_RE.match(size):
         raise ValueError(f"size must be a length like '100mm' or '4in', got {size!r}")
@@ -404,11 +564,26 @@ _ID_ITEM_RE = re.compile(r"^(\d+)(?:\s*-\s*(\d+))?$")
 
 
 def parse_id_list(text: str) -> list[int]:
-    """Parse "0-11" or "0,3,5-7" into a list of ids, in the order given.
+    """Parse an id list such as "0-11" or "0,3,5-7".
 
-    ValueError (with the offending part named) for empty input, garbage, reversed
-    ranges, duplicates, or more than 1000 ids. Range sizes are checked before expanding,
-    so "0-999999999" fails fast instead of allocating.
+    Range sizes are checked before expanding, so "0-999999999" fails fast instead of
+    allocating.
+
+    Parameters
+    ----------
+    text : str
+        Comma-separated non-negative integers and inclusive ranges.
+
+    Returns
+    -------
+    list of int
+        The ids, in the order given.
+
+    Raises
+    ------
+    ValueError
+        With the offending part named, for empty input, garbage, reversed ranges,
+        duplicates, or more than 1000 ids.
     """
     if not isinstance(text, str) or not text.strip():
         raise ValueError("id list is empty; expected e.g. '0-11' or '0,3,5-7'")

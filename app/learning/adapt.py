@@ -29,9 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from app.core.detection import assemble_targets, group_candidates
 from app.core.detection import candidates as cand
 from app.core.markers import DEFAULT_FAMILY, get_family
-from app.core.detection import assemble_targets, group_candidates
+from app.learning.classifier import condense, dihedral
 from app.learning.labels import NEGATIVE_RADII, PEAK_REACH, disc_levels
 
 Progress = Callable[[str, float], None]
@@ -142,13 +143,13 @@ def adapt_classifier(
     if progress:
         progress("condensing", 0.65)
     # Site disc windows in all 8 rotations/reflections, like the simulator positives.
-    site_pos = cand.normalise_windows(cand.dihedral(pos)) if pos.size else np.zeros((0, cand.WINDOW**2), np.float32)
+    site_pos = cand.normalise_windows(dihedral(pos)) if pos.size else np.zeros((0, cand.WINDOW**2), np.float32)
     site_neg = cand.normalise_windows(neg) if neg.size else np.zeros((0, cand.WINDOW**2), np.float32)
     protos = np.asarray(base.prototypes, np.float32)
     x = np.concatenate([protos, site_pos, site_neg])
     y = np.concatenate([np.asarray(base.labels, np.int8), np.ones(site_pos.shape[0], np.int8),
                         np.zeros(site_neg.shape[0], np.int8)])
-    store, passes = cand.condense(x, y, rng, initial=np.arange(protos.shape[0]))
+    store, passes = condense(x, y, rng, initial=np.arange(protos.shape[0]))
     adapted = base.replace(prototypes=x[store], labels=y[store])
     recall_before, fp_before = _stage2_rates(base, pos, neg)
     recall_after, fp_after = _stage2_rates(adapted, pos, neg)

@@ -36,9 +36,10 @@ import cv2
 import numpy as np
 
 from app.core.detection import candidates as cand
-from app.sim import degrade, scenes
 from app.core.markers import DISC_CENTRES
+from app.learning.classifier import rejection_stats, train_classifier
 from app.learning.labels import NEGATIVE_RADII, PEAK_REACH, disc_levels
+from app.sim import degrade, scenes
 from app.sim.scenes import FrameScenario, FrameTruth
 
 Progress = Callable[[str, float], None]
@@ -350,7 +351,7 @@ def train_from_examples(
     dark blobs much like discs, and a flood of them pulls the screen's threshold down
     for every other window. Mined missed disc windows join the positives.
     Background images only serve the rejection-factor statistic of the final round.
-    ``train_options`` go to `candidates.train_classifier`.
+    ``train_options`` go to `classifier.train_classifier`.
     """
     info: dict[str, Any] = dict(stats or {})
     pos, neg = np.asarray(positives), np.asarray(negatives)
@@ -362,7 +363,7 @@ def train_from_examples(
         last = r == rounds - 1
         if progress:
             progress(f"training round {r + 1}", r / rounds)
-        classifier = cand.train_classifier(
+        classifier = train_classifier(
             pos, neg, rng, blob_thresholds=blob_thresholds, nn_negatives=mined,
             background_images=background_images if last else (), stats=info, **train_options,
         )
@@ -547,7 +548,7 @@ def train_default(seed: int = 0, progress: Progress | None = None,
             progress("calibrating thresholds on fresh frames", 0.9)
         frames = calibration_frames(np.random.default_rng(seeds[3]), cfg.calibration_frames_per_scenario)
         classifier, cal = calibrate_thresholds(classifier, frames, cfg.target_disc_recall)
-        cal.update(cand.rejection_stats(classifier, backgrounds))
+        cal.update(rejection_stats(classifier, backgrounds))
         classifier = classifier.replace(stats={**classifier.stats, **cal})
     if progress:
         progress("done", 1.0)

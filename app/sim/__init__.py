@@ -1,3 +1,61 @@
 """The simulator: rooms of cards rendered through a real lens model, degraded as cameras
 degrade images, with ground truth for every disc. Tests, benchmarks and training
-measure against it; the service never imports it."""
+measure against it; the service never imports it.
+
+Modules:
+
+* `app.sim.render`: textured planar quads seen through a `Camera` (`render`).
+* `app.sim.scenes`: cards placed in 3D, photo-textured rooms, camera walks, named
+  single-frame scenarios and the ground truth of every frame.
+* `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG) and
+  their named presets.
+* `app.sim.examples`: the named example rooms the benchmarks and tests measure on.
+
+The photographs on walls and backgrounds need scikit-image: ``pip install
+'fidotrack[sim]'``. The package's name `render` is the function; import the render
+module's other names from it directly (``from app.sim.render import visible_points``).
+"""
+
+from app.sim.degrade import PRESETS, Degradation, DegradationRanges
+from app.sim.examples import BENCH_CAMERA, BENCH_ROOM, EXAMPLES, SMALL_ROOM, ExampleRoom, RoomWalk
+from app.sim.render import TexturedQuad, render
+from app.sim.scenes import (
+    SCENARIOS,
+    FrameScenario,
+    FrameTruth,
+    PlacedTarget,
+    Scene,
+    TargetTruth,
+    camera_walk,
+    frame_truth,
+    render_frame,
+    render_walk,
+    room_scene,
+    scenario_frame,
+)
+
+__all__ = [
+    "BENCH_CAMERA",
+    "BENCH_ROOM",
+    "EXAMPLES",
+    "PRESETS",
+    "SCENARIOS",
+    "SMALL_ROOM",
+    "Degradation",
+    "DegradationRanges",
+    "ExampleRoom",
+    "FrameScenario",
+    "FrameTruth",
+    "PlacedTarget",
+    "RoomWalk",
+    "Scene",
+    "TargetTruth",
+    "TexturedQuad",
+    "camera_walk",
+    "frame_truth",
+    "render",
+    "render_frame",
+    "render_walk",
+    "room_scene",
+    "scenario_frame",
+]

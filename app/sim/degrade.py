@@ -99,10 +99,25 @@ def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def exposure(img: np.ndarray, gain: float, offset: float = 0.0) -> np.ndarray:
-    """img * gain + offset, clipped to [0, 1] (the sensor saturates; it cannot go below 0).
+    """Exposure: ``img * gain + offset``, clipped to [0, 1] (the sensor saturates).
 
-    gain ~0.06..2 (dark frames 0.06-0.2, >1 blows out the white paper); offset models
-    black level / veiling flare (positive lifts the blacks).
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    gain : float
+        Multiplier, >= 0: ~0.06..2 (dark frames 0.06-0.2, > 1 blows out white paper).
+    offset : float, optional
+        Black level / veiling flare (positive lifts the blacks).
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If `gain` is negative or a value is not finite.
     """
     gain = _finite(gain, "gain")
     offset = _finite(offset, "offset")
@@ -114,9 +129,23 @@ def exposure(img: np.ndarray, gain: float, offset: float = 0.0) -> np.ndarray:
 
 
 def gamma(img: np.ndarray, g: float) -> np.ndarray:
-    """Tone curve img ** g (g = 1 identity, g < 1 brightens mid-tones, g > 1 darkens).
+    """Tone curve ``img ** g``, standing in for the unknown camera response curve.
 
-    Stands in for the unknown camera response curve; monotonic for every g > 0.
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    g : float
+        Exponent > 0: 1 is the identity, < 1 brightens mid-tones, > 1 darkens them.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If `g` is not positive and finite.
     """
     g = _finite(g, "g")
     _check(g > 0.0, f"gamma exponent must be > 0, got {g}")
@@ -129,10 +158,27 @@ def gamma(img: np.ndarray, g: float) -> np.ndarray:
 def lighting_gradient(img: np.ndarray, strength: float, angle: float) -> np.ndarray:
     """Uneven illumination: multiply by a linear ramp falling off in direction `angle`.
 
-    The factor is 1 on the brightest image edge and 1 - strength on the opposite one
-    (strength in [0, 1]). It only darkens, so white paper does not saturate here; the
-    overall level is set by `exposure`. Deterministic, so `Degradation.to_dict` fully
-    describes it.
+    The factor is 1 on the brightest image edge and 1 - strength on the opposite one.
+    It only darkens, so white paper does not saturate here; the overall level is set by
+    `exposure`. Deterministic, so `Degradation.to_dict` fully describes it.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    strength : float
+        Darkening at the darkest edge, in [0, 1].
+    angle : float
+        Direction of the fall-off, radians from +x towards +y.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If `strength` is outside [0, 1] or a value is not finite.
     """
     strength = _finite(strength, "strength")
     angle = _finite(angle, "angle")
@@ -152,10 +198,25 @@ def lighting_gradient(img: np.ndarray, strength: float, angle: float) -> np.ndar
 
 
 def vignette(img: np.ndarray, strength: float) -> np.ndarray:
-    """Radial lens fall-off: factor 1 - strength * (r / r_corner)^2, centred on the image.
+    """Radial lens fall-off: factor ``1 - strength * (r / r_corner)^2``, centred on the image.
 
-    A quadratic is the leading term of the cos^4 law; strength in [0, 1] is the
-    darkening in the corners.
+    A quadratic is the leading term of the cos^4 law.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    strength : float
+        Darkening in the corners, in [0, 1].
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If `strength` is outside [0, 1] or not finite.
     """
     strength = _finite(strength, "strength")
     _check(0.0 <= strength <= 1.0, f"strength must be in [0, 1], got {strength}")
@@ -187,8 +248,31 @@ def specular_highlight(
     glare = min(strength * G, 1) with G an elliptical Gaussian: sigma `radius_px` along
     direction `angle` and `radius_px * aspect` across it. out = img + (1 - img) * glare,
     so the result never exceeds 1 and, unlike plain addition, a black disc under the
-    glare is washed out toward white as on real paper. strength > 1 widens a fully
-    blown-out core.
+    glare is washed out toward white as on real paper.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    centre_xy : tuple of float
+        Centre of the blob, pixels (x, y).
+    radius_px : float
+        Gaussian sigma along `angle`, pixels, > 0.
+    strength : float
+        Peak glare, >= 0; above 1 widens a fully blown-out core.
+    aspect : float, optional
+        Sigma across `angle` over sigma along it, in (0, 1].
+    angle : float, optional
+        Direction of the long axis, radians from +x towards +y.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If a parameter is out of range or not finite.
     """
     cx, cy = (_finite(v, "centre_xy") for v in centre_xy)
     radius_px = _finite(radius_px, "radius_px")
@@ -225,6 +309,26 @@ def sensor_noise(
     variance per unit signal, i.e. 1 / (electrons that make white). The shot part is a
     true Poisson draw (signal / shot_scale photo-electrons) because dark frames have few
     electrons per pixel, where a Gaussian approximation is poor.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    rng : numpy.random.Generator
+        Draws the noise.
+    read_sigma : float
+        Standard deviation of the read noise, grey levels, >= 0.
+    shot_scale : float
+        Shot-noise variance per unit signal, >= 0.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If a parameter is negative or not finite.
     """
     read_sigma = _finite(read_sigma, "read_sigma")
     shot_scale = _finite(shot_scale, "shot_scale")
@@ -245,15 +349,43 @@ def sensor_noise(
 
 
 def to_uint8(img: np.ndarray) -> np.ndarray:
-    """[0, 1] float -> uint8 0..255 (clip, then round half to even)."""
+    """Quantise grey levels to 8 bits (clip, then round half to even).
+
+    Parameters
+    ----------
+    img : ndarray
+        Grey levels in [0, 1].
+
+    Returns
+    -------
+    ndarray of uint8
+        0..255, same shape.
+    """
     a = np.asarray(img, dtype=np.float32)
     return np.rint(np.clip(a, 0.0, 1.0) * np.float32(255.0)).astype(np.uint8)
 
 
 def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
-    """Encode to JPEG at `quality` (1..100) with OpenCV and decode; float32 in [0, 1].
+    """JPEG artefacts: encode with OpenCV and decode again.
 
     Quantises to 8 bits first, as a real camera pipeline would.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    quality : int
+        JPEG quality, 1..100.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Grey levels in [0, 1].
+
+    Raises
+    ------
+    ValueError
+        If `quality` is not an integer in 1..100.
     """
     if isinstance(quality, bool) or not float(quality).is_integer():
         raise ValueError(f"quality must be an integer, got {quality!r}")
@@ -281,6 +413,23 @@ def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray:
     sub-pixel lengths blur by exactly the right amount, and an exactly point-symmetric
     kernel, so the blur never moves a centroid. Second moment along the smear is
     L^2 / 12 (the uniform motion) plus ~1/6 from the pixel footprint of the splat.
+
+    Parameters
+    ----------
+    length_px : float
+        Length of the smear, pixels, >= 0.
+    angle_rad : float
+        Its direction, radians from +x towards +y.
+
+    Returns
+    -------
+    (2k + 1, 2k + 1) ndarray of float32
+        Sums to 1; k = ceil(length_px / 2) + 1.
+
+    Raises
+    ------
+    ValueError
+        If `length_px` is negative or a value is not finite.
     """
     length = _finite(length_px, "length_px")
     angle = _finite(angle_rad, "angle_rad")
@@ -312,6 +461,21 @@ def defocus_kernel(radius_px: float) -> np.ndarray:
     sub-samples placed symmetrically, so the kernel is exactly point-symmetric. Radii
     below ~0.5 px fit inside the centre pixel and give (nearly) the identity: a blur
     circle smaller than a pixel does not blur.
+
+    Parameters
+    ----------
+    radius_px : float
+        Radius of the blur circle, pixels, >= 0.
+
+    Returns
+    -------
+    (2k + 1, 2k + 1) ndarray of float32
+        Sums to 1; k = ceil(radius_px) + 1.
+
+    Raises
+    ------
+    ValueError
+        If `radius_px` is negative or not finite.
     """
     r = _finite(radius_px, "radius_px")
     _check(r >= 0.0, f"radius_px must be >= 0, got {r}")
@@ -341,7 +505,21 @@ def _filter(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 def motion_blur(img: np.ndarray, length_px: float, angle_rad: float) -> np.ndarray:
-    """Linear motion blur over `length_px` pixels in direction `angle_rad` (centred)."""
+    """Linear motion blur, centred (it moves no centroid).
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels.
+    length_px : float
+        Length of the smear, pixels.
+    angle_rad : float
+        Its direction, radians from +x towards +y.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+    """
     out = _as_image(img)
     if float(length_px) == 0.0:
         _finite(angle_rad, "angle_rad")
@@ -350,7 +528,19 @@ def motion_blur(img: np.ndarray, length_px: float, angle_rad: float) -> np.ndarr
 
 
 def defocus(img: np.ndarray, radius_px: float) -> np.ndarray:
-    """Out-of-focus blur: convolution with an anti-aliased pillbox of `radius_px`."""
+    """Out-of-focus blur: convolution with an anti-aliased pillbox (`defocus_kernel`).
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels.
+    radius_px : float
+        Radius of the blur circle, pixels.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+    """
     out = _as_image(img)
     if float(radius_px) == 0.0:
         return out
@@ -371,6 +561,25 @@ def polygon_coverage(
     analytically) and `supersample` scan lines per pixel row in y. Unlike cv2.fillPoly,
     which includes every sub-pixel an edge touches (a few % too much area on small
     shapes), this is unbiased: the mask sums to the polygon's area inside the image.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (H, W) of the mask.
+    polygon_xy : (N, 2) ndarray
+        Vertices in pixel coordinates (x, y), N >= 3.
+    supersample : int, optional
+        Scan lines per pixel row.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Coverage in [0, 1].
+
+    Raises
+    ------
+    ValueError
+        If the polygon is not finite (N >= 3, 2) or `supersample` < 1.
     """
     h, w = (int(v) for v in shape)
     poly = np.asarray(polygon_xy, dtype=np.float64)
@@ -431,8 +640,28 @@ def occlude(
 
     `value_or_texture` is a grey level, an image of the same shape as `img`, or a smaller
     2-D patch tiled from the polygon's bounding-box corner (so the texture moves with
-    the occluder). Edges are anti-aliased by area coverage. Returns (image, mask), the
-    mask being the float32 coverage in [0, 1], for ground truth (which discs are hidden).
+    the occluder). Edges are anti-aliased by area coverage.
+
+    Parameters
+    ----------
+    img : (H, W) ndarray
+        Grey levels in [0, 1].
+    polygon_xy : (N, 2) ndarray
+        The occluder's vertices, pixels (x, y).
+    value_or_texture : float or ndarray
+        What covers the polygon.
+
+    Returns
+    -------
+    image : (H, W) ndarray of float32
+        The occluded image.
+    mask : (H, W) ndarray of float32
+        Coverage in [0, 1], for ground truth (which discs are hidden).
+
+    Raises
+    ------
+    ValueError
+        If `value_or_texture` is neither a number nor a 2-D array.
     """
     out = _as_image(img)
     mask = polygon_coverage(out.shape, polygon_xy)
@@ -467,8 +696,16 @@ def occlude(
 class Specular:
     """A glare blob in image-relative units, so a sampled one fits any resolution.
 
-    centre_rel: (x, y) as fractions of (width - 1, height - 1); radius_rel: Gaussian
-    sigma as a fraction of min(height, width); aspect/angle as in `specular_highlight`.
+    Attributes
+    ----------
+    centre_rel : tuple of float
+        (x, y) as fractions of (width - 1, height - 1).
+    radius_rel : float
+        Gaussian sigma as a fraction of min(height, width), > 0.
+    strength : float
+        Peak glare, >= 0.
+    aspect, angle : float
+        As in `specular_highlight` (angle in radians).
     """
 
     centre_rel: tuple[float, float]
@@ -487,12 +724,36 @@ class Specular:
         _check(0.0 < self.aspect <= 1.0, "specular aspect must be in (0, 1]")
 
     def in_pixels(self, shape: tuple[int, int]) -> tuple[tuple[float, float], float]:
-        """((x, y) centre, sigma) in pixels for an image of `shape` (H, W)."""
+        """The blob in pixels for an image of a given size.
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (H, W) of the image.
+
+        Returns
+        -------
+        centre : tuple of float
+            (x, y), pixels.
+        sigma : float
+            Pixels.
+        """
         h, w = shape
         centre = (self.centre_rel[0] * (w - 1), self.centre_rel[1] * (h - 1))
         return centre, self.radius_rel * min(h, w)
 
     def apply(self, img: np.ndarray) -> np.ndarray:
+        """Add the glare to an image (`specular_highlight`).
+
+        Parameters
+        ----------
+        img : (H, W) ndarray
+            Grey levels in [0, 1].
+
+        Returns
+        -------
+        (H, W) ndarray of float32
+        """
         centre, radius = self.in_pixels(np.shape(img))
         return specular_highlight(
             img, centre, radius, self.strength, aspect=self.aspect, angle=self.angle
@@ -501,7 +762,19 @@ class Specular:
 
 @dataclass(frozen=True)
 class Degradation:
-    """One sampled set of camera degradations; the defaults are the identity."""
+    """One sampled set of camera degradations; the defaults are the identity.
+
+    Each field is the parameter of the function of the same stage: `exposure` (gain,
+    offset), `lighting_gradient` (gradient_strength, gradient_angle), `vignette`,
+    `gamma`, `sensor_noise` (read_sigma, shot_scale), `motion_blur` (blur_length,
+    blur_angle), `defocus` (defocus_radius), `jpeg` (jpeg_quality, None: no JPEG) and
+    `Specular` (None: no glare). Lengths in pixels, angles in radians.
+
+    Raises
+    ------
+    ValueError
+        If a parameter is out of its function's range.
+    """
 
     gain: float = 1.0
     offset: float = 0.0
@@ -550,7 +823,19 @@ class Degradation:
         both are centroid-preserving), then illumination (lighting gradient, vignette,
         specular glare, exposure: smooth fields that nearly commute with the blur), then
         the sensor (noise on the exposed signal, then the tone curve), JPEG last as the
-        camera's output. `rng` is only drawn from for noise. Returns float32 in [0, 1].
+        camera's output.
+
+        Parameters
+        ----------
+        img : (H, W) ndarray
+            The rendered image, grey levels in [0, 1].
+        rng : numpy.random.Generator
+            Drawn from for the sensor noise only.
+
+        Returns
+        -------
+        (H, W) ndarray of float32
+            Grey levels in [0, 1].
         """
         out = np.clip(_as_image(img), 0.0, 1.0)
         if self.defocus_radius > 0.0:
@@ -574,7 +859,13 @@ class Degradation:
         return np.clip(out, 0.0, 1.0).astype(np.float32, copy=False)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict for ground-truth files (round-trips via from_dict)."""
+        """The parameters as a plain JSON-able dict for ground-truth files.
+
+        Returns
+        -------
+        dict
+            One key per field; round-trips through `from_dict`.
+        """
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         if self.specular is not None:
             sp = dataclasses.asdict(self.specular)
@@ -584,6 +875,17 @@ class Degradation:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Degradation:
+        """The degradation of a `to_dict` document.
+
+        Parameters
+        ----------
+        data : mapping
+            Field names to values.
+
+        Returns
+        -------
+        Degradation
+        """
         spec = data.get("specular")
         kwargs = {k: v for k, v in data.items() if k != "specular"}
         return cls(**kwargs, specular=None if spec is None else Specular(**spec))
@@ -602,6 +904,16 @@ class DegradationRanges:
     exponent of 0.8 is as far from 1 as 1.25); everything else uniformly. Gradient
     angle is uniform over a full turn and blur angle over `blur_angle` (a smear is
     symmetric, so [0, pi) covers every direction). The defaults are the identity.
+
+    Each ``(lo, hi)`` field is the range of the `Degradation` field of the same name
+    and each ``p_*`` the probability that an optional stage is on; the ``specular_*``
+    ranges are those of `Specular`.
+
+    Raises
+    ------
+    ValueError
+        If a range is reversed or outside its parameter's domain, or a probability is
+        outside [0, 1].
     """
 
     gain: Range = (1.0, 1.0)
@@ -664,7 +976,21 @@ class DegradationRanges:
 
     @classmethod
     def preset(cls, name: str) -> DegradationRanges:
-        """The named preset ("none", "default", "blur", "dark", "full"); KeyError else."""
+        """A named preset.
+
+        Parameters
+        ----------
+        name : {"none", "default", "blur", "dark", "full"}
+
+        Returns
+        -------
+        DegradationRanges
+
+        Raises
+        ------
+        KeyError
+            If there is no preset of that name.
+        """
         try:
             return PRESETS[name]
         except KeyError:
@@ -676,6 +1002,14 @@ class DegradationRanges:
         Every value is drawn every time, in a fixed order, whether or not its option is
         switched on, so the stream (and hence the other parameters) does not depend on
         the probabilities.
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+
+        Returns
+        -------
+        Degradation
         """
 
         def uni(r: Range) -> float:
@@ -794,6 +1128,7 @@ DegradationRanges.BLUR = BLUR
 DegradationRanges.DARK = DARK
 DegradationRanges.FULL = FULL
 
+#: The named presets, by name.
 PRESETS: dict[str, DegradationRanges] = {
     "none": NONE,
     "default": DEFAULT,

@@ -64,6 +64,8 @@ from numpy.typing import ArrayLike
 
 from app.core.geometry import Camera, Pose
 
+__all__ = ["NEAR_M", "TexturedQuad", "render", "visible_points"]
+
 #: Near clipping distance (metres along the optical axis).
 NEAR_M: float = 0.01
 
@@ -95,11 +97,22 @@ def _ones(h: int, w: int) -> np.ndarray:
 class TexturedQuad:
     """A planar parallelogram (usually a rectangle) in map coordinates with a texture.
 
-    corners: (4, 3) map coordinates of the texture's top-left, top-right, bottom-right,
+    Parameters
+    ----------
+    corners : (4, 3) array_like
+        Map coordinates (metres) of the texture's top-left, top-right, bottom-right and
         bottom-left corners; corner 2 must equal c1 + c3 - c0 (the map from texture
         units to the plane is affine, hence a homography to the image).
-    texture: greyscale (h, w); uint8 (0..255) or float in [0, 1]; stored float32.
-    mipmaps: the texture pyramid, level 0 = texture; built on first use (mip_levels()).
+    texture : (h, w) ndarray
+        Greyscale, uint8 (0..255) or float in [0, 1]; stored float32 in [0, 1].
+    mipmaps : list of ndarray, optional
+        The texture pyramid, level 0 = texture; built on first use (`mip_levels`).
+
+    Raises
+    ------
+    ValueError
+        If the corners are not a finite, non-degenerate parallelogram or the texture
+        is not a non-empty 2-D image.
     """
 
     corners: np.ndarray
@@ -131,8 +144,23 @@ class TexturedQuad:
     def from_frame(
         cls, origin: ArrayLike, x_edge: ArrayLike, y_edge: ArrayLike, texture: np.ndarray
     ) -> TexturedQuad:
-        """Quad with top-left corner `origin`; `x_edge` runs along the texture's top edge
-        (left to right), `y_edge` down its left edge (full edge vectors, metres)."""
+        """A quad from its top-left corner and two edge vectors.
+
+        Parameters
+        ----------
+        origin : (3,) array_like
+            Map coordinates of the texture's top-left corner, metres.
+        x_edge : (3,) array_like
+            The whole top edge, left to right, metres.
+        y_edge : (3,) array_like
+            The whole left edge, top to bottom, metres.
+        texture : (h, w) ndarray
+            As for the class.
+
+        Returns
+        -------
+        TexturedQuad
+        """
         o = np.asarray(origin, np.float64)
         ex, ey = np.asarray(x_edge, np.float64), np.asarray(y_edge, np.float64)
         return cls(np.stack([o, o + ex, o + ex + ey, o + ey]), texture)
@@ -146,10 +174,18 @@ class TexturedQuad:
 
     @property
     def centre(self) -> np.ndarray:
+        """Mean of the corners, map coordinates."""
         return self.corners.mean(axis=0)
 
     def mip_levels(self) -> list[np.ndarray]:
-        """[texture, half, quarter, ...] (INTER_AREA box filter), built once and kept."""
+        """The texture's mip pyramid, built on first use and kept.
+
+        Returns
+        -------
+        list of ndarray
+            [texture, half, quarter, ...] (INTER_AREA box filter), float32, down to a
+            few texels a side.
+        """
         if self.mipmaps is None:
             levels = [self.texture]
             while max(levels[-1].shape) > _MIN_LEVEL_SIZE:
@@ -408,9 +444,34 @@ def render(
     supersample: int = 2,
     near: float = NEAR_M,
 ) -> np.ndarray:
-    """The (height, width) float32 image in [0, 1] that `camera` at `pose` sees.
+    """The image that `camera` at `pose` sees of a set of textured quads.
 
     Lens distortion is applied to the whole frame; see the module docstring.
+
+    Parameters
+    ----------
+    camera : Camera
+        Intrinsics, distortion and image size.
+    pose : Pose
+        Map-to-camera transform, ``x_cam = R @ X_map + t``.
+    quads : sequence of TexturedQuad
+        The scene, in map coordinates; quads must not pierce each other.
+    background : float, optional
+        Grey level where no quad is drawn, 0..1.
+    supersample : int, optional
+        Samples per pixel along each axis (each pixel is their box-filtered mean).
+    near : float, optional
+        Near clipping distance along the optical axis, metres.
+
+    Returns
+    -------
+    (height, width) ndarray of float32
+        Grey levels in [0, 1], pixel centre of the top-left pixel at (0, 0).
+
+    Raises
+    ------
+    ValueError
+        If `supersample` is not a positive integer or `near` is not positive.
     """
     s = int(supersample)
     if s != supersample or s < 1:
@@ -489,15 +550,33 @@ def visible_points(
     normals: ArrayLike | None = None,
     near: float = NEAR_M,
 ) -> np.ndarray:
-    """(N,) bool: in front of the camera (z_cam > near), projecting inside the image
-    (pixel areas: -0.5 <= u < width - 0.5, likewise v) after distortion, and, if
-    `normals` (N, 3) or (3,) are given, on a surface facing the camera.
+    """Which map points the camera sees (occlusion aside).
+
+    A point is visible when it lies in front of the camera (z_cam > near), projects
+    inside the image (pixel areas: -0.5 <= u < width - 0.5, likewise v) after
+    distortion, and, if `normals` are given, lies on a surface facing the camera.
 
     With distortion the ideal projection must also lie in the region the lens actually
     sees (Camera.ideal_canvas): far-off points can fold back into the image through the
     distortion polynomial. For a lens whose image lies inside its fold this is the same
     as ``Camera.in_field(margin=1.0)``; the canvas is kept because it is what `render`
     draws, also for a wild lens whose image reaches the fold (where the two differ).
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform.
+    X_map : (N, 3) array_like
+        Points in map coordinates, metres.
+    normals : (N, 3) or (3,) array_like, optional
+        Normals of the surfaces the points lie on (out of the visible side).
+    near : float, optional
+        Near clipping distance, metres.
+
+    Returns
+    -------
+    (N,) ndarray of bool
     """
     X = np.asarray(X_map, dtype=np.float64).reshape(-1, 3)
     Xc = pose.transform(X)

@@ -2,7 +2,12 @@
 walks, and the ground truth of every rendered frame.
 
 Ground truth is the projection of each disc's 3D centre (not the centroid of its imaged
-ellipse), taken from the scene geometry, never from the code under test.
+ellipse), taken from the scene geometry, never from the code under test. Map
+coordinates are metres; a room is the box [0, W] x [0, D] x [0, H] with z up; poses map
+map points to the camera, ``x_cam = R @ X_map + t``.
+
+The wall and background photographs come from scikit-image's bundled data
+(``skimage.data``), an optional dependency: ``pip install 'fidotrack[sim]'``.
 """
 
 from __future__ import annotations
@@ -17,12 +22,37 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from app.sim import degrade
 from app.core.geometry import Camera, Pose
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family, marker_layout, render_card
+from app.sim import degrade
 from app.sim.render import TexturedQuad, render
 
-# Real photographs that scikit-image ships in its wheel (no download at run time).
+__all__ = [
+    "CARD_TEXTURE_PX",
+    "PHOTO_NAMES",
+    "SCENARIOS",
+    "CardArtwork",
+    "FrameScenario",
+    "FrameTruth",
+    "PlacedTarget",
+    "Scene",
+    "TargetTruth",
+    "Wall",
+    "builtin_photos",
+    "camera_walk",
+    "card_texture",
+    "frame_truth",
+    "photo_mosaic",
+    "render_frame",
+    "render_walk",
+    "room_scene",
+    "room_walls",
+    "scenario_frame",
+    "single_frame_scene",
+    "target_truth",
+]
+
+#: Real photographs that scikit-image ships in its wheel (no download at run time).
 PHOTO_NAMES: tuple[str, ...] = (
     "astronaut", "brick", "camera", "cat", "chelsea", "clock", "coffee", "coins", "grass",
     "gravel", "hubble_deep_field", "immunohistochemistry", "moon", "page", "rocket", "text",
@@ -32,7 +62,7 @@ PHOTO_NAMES: tuple[str, ...] = (
 # card stays a mesh of planes (each disc lies whole on one panel, its centre exact) and
 # the fold lines fall between discs and code.
 _PANEL_EDGES = (0.0, CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE, 1.0)
-# Texture side of a card: a multiple of 20 so that the panel edges fall on texel edges.
+#: Texture side of a card, texels: a multiple of 20 so that the panel edges fall on texel edges.
 CARD_TEXTURE_PX = 480
 # Texels by which panels overlap at a fold, so that anti-aliased edges leave no seam.
 _PANEL_OVERLAP_PX = 2
@@ -40,8 +70,22 @@ _PANEL_OVERLAP_PX = 2
 
 @functools.cache
 def builtin_photos() -> tuple[np.ndarray, ...]:
-    """The bundled photographs as float32 greyscale images in [0, 1]."""
-    import skimage.data
+    """The photographs of `PHOTO_NAMES`, loaded once from scikit-image's bundled data.
+
+    Returns
+    -------
+    tuple of ndarray
+        Float32 greyscale images in [0, 1].
+
+    Raises
+    ------
+    ImportError
+        If scikit-image is not installed.
+    """
+    try:
+        import skimage.data
+    except ImportError as e:
+        raise ImportError("the simulator needs scikit-image: pip install 'fidotrack[sim]'") from e
 
     photos = []
     for name in PHOTO_NAMES:
@@ -54,7 +98,20 @@ def builtin_photos() -> tuple[np.ndarray, ...]:
 
 @functools.cache
 def card_texture(family: str, marker_id: int) -> np.ndarray:
-    """The card as a float32 texture (cached: a room reuses each card every frame)."""
+    """A target's card as a texture (cached: a room reuses each card every frame).
+
+    Parameters
+    ----------
+    family : str
+        Code family name.
+    marker_id : int
+        Target id.
+
+    Returns
+    -------
+    (CARD_TEXTURE_PX, CARD_TEXTURE_PX) ndarray of float32
+        Grey levels in [0, 1], read-only; card units u -> texture units u.
+    """
     card = render_card(marker_layout(family, marker_id), CARD_TEXTURE_PX)
     texture = card.astype(np.float32) / 255.0
     texture.setflags(write=False)
@@ -64,7 +121,23 @@ def card_texture(family: str, marker_id: int) -> np.ndarray:
 def photo_mosaic(
     photos: Sequence[np.ndarray], rows: int, cols: int, tile_px: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """A wall texture: random crops of random photos, tiled (clutter at many scales)."""
+    """A wall texture: random crops of random photos, tiled (clutter at many scales).
+
+    Parameters
+    ----------
+    photos : sequence of ndarray
+        Greyscale float32 photographs.
+    rows, cols : int
+        Tiles down and across.
+    tile_px : int
+        Side of a tile, texels.
+    rng : numpy.random.Generator
+        Draws the photo, crop and mirroring of each tile.
+
+    Returns
+    -------
+    (rows * tile_px, cols * tile_px) ndarray of float32
+    """
     mosaic = np.empty((rows * tile_px, cols * tile_px), np.float32)
     for r in range(rows):
         for c in range(cols):
@@ -82,8 +155,16 @@ def photo_mosaic(
 @dataclass(frozen=True, eq=False)
 class CardArtwork:
     """Other printed artwork on a card of the same size (e.g. an AprilTag or ArUco
-    marker for side-by-side benchmarks): its texture and the four reference points
-    whose projections are its ground truth, in card units."""
+    marker for side-by-side benchmarks).
+
+    Attributes
+    ----------
+    texture : (h, w) ndarray
+        The card's texture, float32 in [0, 1].
+    points_uv : (4, 2) ndarray
+        The reference points whose projections are its ground truth, card units
+        (0..1, origin top-left, x right, y down).
+    """
 
     texture: np.ndarray
     points_uv: np.ndarray
@@ -93,9 +174,24 @@ class CardArtwork:
 class PlacedTarget:
     """A printed card in the scene.
 
-    ``origin`` is the card's top-left corner, ``x_axis``/``y_axis`` unit vectors along
-    its top edge and down its left edge (as printed), ``normal`` points out of the
-    printed face. ``bend_m`` lifts the middle panel off the plane (paper is not flat).
+    Attributes
+    ----------
+    id : int
+        Target id.
+    family : str
+        Code family name.
+    size_m : float
+        Side of the card, metres.
+    origin : (3,) ndarray
+        The card's top-left corner (as printed), map coordinates.
+    x_axis, y_axis : (3,) ndarray
+        Unit vectors along its top edge and down its left edge (as printed);
+        ``normal = y_axis x x_axis`` points out of the printed face.
+    bend_m : float
+        How far the middle panel is lifted off the card's plane, metres (paper is not
+        flat).
+    artwork : CardArtwork or None
+        Other artwork printed instead of the target.
     """
 
     id: int
@@ -109,6 +205,7 @@ class PlacedTarget:
 
     @property
     def normal(self) -> np.ndarray:
+        """Unit normal out of the printed face, map coordinates."""
         return np.cross(self.y_axis, self.x_axis)
 
     def _offset(self, u: np.ndarray) -> np.ndarray:
@@ -119,7 +216,18 @@ class PlacedTarget:
         return np.interp(u, edges, lift)
 
     def point(self, uv: np.ndarray) -> np.ndarray:
-        """Map coordinates of card points ``uv`` (N,2) in card units."""
+        """Map coordinates of points on the (bent) card.
+
+        Parameters
+        ----------
+        uv : (N, 2) array_like
+            Card units: 0..1, origin top-left, x right, y down.
+
+        Returns
+        -------
+        (N, 3) ndarray
+            Map coordinates, metres.
+        """
         uv = np.atleast_2d(np.asarray(uv, np.float64))
         u, v = uv[:, 0], uv[:, 1]
         return (
@@ -130,17 +238,25 @@ class PlacedTarget:
 
     @property
     def discs(self) -> np.ndarray:
-        """3D centres of discs 0..3 (the ground truth of the map); for other artwork,
-        its reference points."""
+        """(4, 3) map coordinates of disc centres 0..3 (0 top-left, 1 top-right,
+        2 bottom-right, 3 bottom-left as printed): the map's ground truth. For other
+        artwork, its reference points."""
         if self.artwork is not None:
             return self.point(self.artwork.points_uv)
         return self.point(marker_layout(self.family, self.id).discs)
 
     @property
     def corners(self) -> np.ndarray:
+        """(4, 3) map coordinates of the card's corners, top-left first, clockwise as printed."""
         return self.point(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64))
 
     def quads(self) -> list[TexturedQuad]:
+        """The card as textured quads to render: three flat panels split at the code area.
+
+        Returns
+        -------
+        list of TexturedQuad
+        """
         texture = card_texture(self.family, self.id) if self.artwork is None else self.artwork.texture
         px = texture.shape[1]
         quads = []
@@ -166,12 +282,28 @@ class PlacedTarget:
         )
 
     def to_map_target(self) -> dict[str, Any]:
+        """The card's entry in a map document.
+
+        Returns
+        -------
+        dict
+            ``id`` and ``discs`` (4 x 3, metres, rounded to micrometres).
+        """
         return {"id": self.id, "discs": self.discs.round(6).tolist()}
 
 
 @dataclass(eq=False)
 class Scene:
-    """Background planes and placed targets, in map coordinates (metres)."""
+    """Background planes and placed targets, in map coordinates (metres).
+
+    Attributes
+    ----------
+    background : list of TexturedQuad
+        Walls, floor, ceiling or a backdrop.
+    targets : list of PlacedTarget
+    room_size : tuple of float or None
+        (W, D, H) of a box room in metres; None for other scenes.
+    """
 
     background: list[TexturedQuad]
     targets: list[PlacedTarget]
@@ -179,12 +311,29 @@ class Scene:
     _quads: list[TexturedQuad] | None = field(default=None, repr=False)
 
     def quads(self) -> list[TexturedQuad]:
+        """Everything to render: the background, then every card's panels (built once).
+
+        Returns
+        -------
+        list of TexturedQuad
+        """
         if self._quads is None:
             self._quads = [*self.background, *(q for t in self.targets for q in t.quads())]
         return self._quads
 
     def map_document(self, camera: Camera) -> dict[str, Any]:
-        """The true map in DESIGN.md's format."""
+        """The true map as a map document (docs/map-format.md).
+
+        Parameters
+        ----------
+        camera : Camera
+            The camera written to the document.
+
+        Returns
+        -------
+        dict
+            In the frame "world", units metres, targets by id.
+        """
         return {
             "frame": "world",
             "units": "m",
@@ -221,6 +370,20 @@ def _plane_quad(centre: np.ndarray, inward: np.ndarray, up: np.ndarray, width: f
 
 @dataclass(frozen=True)
 class Wall:
+    """One face of a box room.
+
+    Attributes
+    ----------
+    centre : (3,) ndarray
+        Centre of the face, map coordinates.
+    inward : (3,) ndarray
+        Unit normal into the room.
+    up : (3,) ndarray
+        Unit vector that is up on the face as seen from inside.
+    width, height : float
+        Size of the face, metres.
+    """
+
     centre: np.ndarray
     inward: np.ndarray
     up: np.ndarray
@@ -229,7 +392,18 @@ class Wall:
 
 
 def room_walls(size: tuple[float, float, float]) -> list[Wall]:
-    """The six faces of a box room [0,W]x[0,D]x[0,H] (z up), seen from inside."""
+    """The six faces of a box room [0, W] x [0, D] x [0, H] (z up), seen from inside.
+
+    Parameters
+    ----------
+    size : tuple of float
+        (W, D, H), metres.
+
+    Returns
+    -------
+    list of Wall
+        The four side walls (y = 0, y = D, x = 0, x = W), then floor and ceiling.
+    """
     w, d, h = size
     z = np.array([0.0, 0.0, 1.0])
     y = np.array([0.0, 1.0, 0.0])
@@ -252,8 +426,37 @@ def room_scene(
     max_bend_m: float = 0.004,
     photos: Sequence[np.ndarray] | None = None,
 ) -> Scene:
-    """A box room with photo-textured walls, floor and ceiling and ``n_targets`` cards
-    at random places, heights and rotations on the four walls."""
+    """A box room with photo-textured walls, floor and ceiling and cards on its walls.
+
+    The cards get random places, rotations and heights (centres 0.7 m up to
+    min(H - 0.3, 2.3) m) on the four side walls, 2 mm off the wall, ids 0 .. n_targets - 1.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Draws the wall textures, then the cards.
+    size : tuple of float, optional
+        (W, D, H) of the room, metres.
+    n_targets : int, optional
+        Cards to place.
+    marker_size_m : float, optional
+        Side of a card, metres.
+    family : str, optional
+        Code family of the cards.
+    max_bend_m : float, optional
+        Each card's bend is drawn uniformly from [0, max_bend_m], metres.
+    photos : sequence of ndarray, optional
+        Wall photographs; by default `builtin_photos`.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    ValueError
+        If the cards do not fit on the walls.
+    """
     photos = photos if photos is not None else builtin_photos()
     walls = room_walls(size)
     background = []
@@ -310,9 +513,29 @@ def camera_walk(
 ) -> list[Pose]:
     """A smooth hand-held walk through a room.
 
-    ``calibration``: two loops around the room looking outward at the walls, at two
-    heights, so every wall is seen from widely spaced viewpoints (as the paper asks of a
-    survey video). ``tracking``: a random smooth path looking at random wall points.
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Draws the walk.
+    room_size : tuple of float
+        (W, D, H) of the room, metres.
+    n_frames : int
+        Poses in the walk.
+    kind : {"calibration", "tracking"}, optional
+        "calibration": two loops around the room looking outward at the walls, at two
+        heights, so every wall is seen from widely spaced viewpoints (as the paper asks
+        of a survey video). "tracking": a random smooth path looking at random wall
+        points.
+
+    Returns
+    -------
+    list of Pose
+        Map-to-camera transforms, one per frame.
+
+    Raises
+    ------
+    ValueError
+        If `kind` is unknown.
     """
     w, d, h = room_size
     centre = np.array([w / 2, d / 2, 0.0])
@@ -362,8 +585,38 @@ def single_frame_scene(
     photos: Sequence[np.ndarray] | None = None,
     clutter_tiles: tuple[int, int] = (3, 4),
 ) -> Scene:
-    """Cards at a given distance, tilt and roll in front of a camera at the origin
-    (identity pose: looking along +z, y down), over a photo background plane."""
+    """Cards in front of a camera at the origin, over a photo background plane.
+
+    The camera has the identity pose: it looks along +z, y down.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    camera : Camera
+    n_targets : int, optional
+    distance_m : tuple of float, optional
+        Range of the cards' depths, metres.
+    tilt_deg : tuple of float, optional
+        Range of the cards' tilts away from facing the camera, degrees.
+    marker_size_m : float, optional
+        Side of a card, metres.
+    family : str, optional
+    ids : sequence of int, optional
+        The cards' ids; by default drawn at random from the family.
+    photos : sequence of ndarray, optional
+        Background photographs; by default `builtin_photos`.
+    clutter_tiles : tuple of int, optional
+        (rows, cols) of photo tiles on the background.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    ValueError
+        If `ids` does not list `n_targets` ids or the cards do not fit into the view.
+    """
     photos = photos if photos is not None else builtin_photos()
     if ids is not None and len(ids) != n_targets:
         raise ValueError("ids must list n_targets ids")
@@ -412,6 +665,26 @@ def single_frame_scene(
 
 @dataclass(frozen=True)
 class TargetTruth:
+    """The ground truth of one target in one frame.
+
+    Attributes
+    ----------
+    id : int
+    discs_px : (4, 2) ndarray
+        Projections of the 3D disc centres, pixels (NaN behind the camera).
+    disc_visible : (4,) ndarray of bool
+        In front, inside the image, within the lens's field, facing the camera and not
+        occluded.
+    distance_m : float
+        Distance from the camera centre to the card's centre, metres.
+    facing_cos : float
+        Cosine between the card normal and the direction to the camera.
+    disc_diameter_px : float
+        Approximate imaged disc diameter, pixels.
+    occluded : bool
+        Whether an occluder was drawn over the card.
+    """
+
     id: int
     discs_px: np.ndarray  # (4,2) projections of the 3D disc centres
     disc_visible: np.ndarray  # (4,) in front, inside the image, facing the camera, not occluded
@@ -422,9 +695,16 @@ class TargetTruth:
 
     @property
     def visible(self) -> bool:
+        """All four discs visible."""
         return bool(self.disc_visible.all())
 
     def to_dict(self) -> dict[str, Any]:
+        """The truth as JSON-able values (rounded).
+
+        Returns
+        -------
+        dict
+        """
         return {
             "id": self.id,
             "discs_px": self.discs_px.round(4).tolist(),
@@ -439,15 +719,40 @@ class TargetTruth:
 
 @dataclass(frozen=True)
 class FrameTruth:
+    """The ground truth of one rendered frame.
+
+    Attributes
+    ----------
+    pose : Pose
+        Map-to-camera transform of the frame.
+    camera : Camera
+    targets : list of TargetTruth
+        Every target with a disc in front of the camera.
+    degradation : dict
+        The frame's `Degradation.to_dict` (empty when none).
+    """
+
     pose: Pose
     camera: Camera
     targets: list[TargetTruth]
     degradation: dict[str, Any]
 
     def visible_targets(self) -> list[TargetTruth]:
+        """The targets whose four discs are all visible.
+
+        Returns
+        -------
+        list of TargetTruth
+        """
         return [t for t in self.targets if t.visible]
 
     def to_dict(self) -> dict[str, Any]:
+        """The truth as JSON-able values: the pose, its targets, the degradation.
+
+        Returns
+        -------
+        dict
+        """
         return {
             "R": self.pose.R.round(9).tolist(),
             "t": self.pose.t.round(9).tolist(),
@@ -464,11 +769,25 @@ _FIELD_MARGIN = 1.02
 
 
 def target_truth(camera: Camera, pose: Pose, target: PlacedTarget, border_px: float = 2.0) -> TargetTruth | None:
-    """Ground truth of one target, or None when no part of it is in front of the camera.
+    """Ground truth of one target seen from `pose`.
 
     A disc is visible when it projects inside the image (``border_px`` in) and its ray
     is within the lens's field: far off axis (~70 degrees for k1 = -0.12) the distortion
     polynomial folds points back into the image, where the renderer draws nothing.
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform.
+    target : PlacedTarget
+    border_px : float, optional
+        A visible disc's centre lies at least this far inside the image, pixels.
+
+    Returns
+    -------
+    TargetTruth or None
+        None when no disc is in front of the camera.
     """
     discs = target.discs
     cam = pose.transform(discs)
@@ -501,6 +820,21 @@ def target_truth(camera: Camera, pose: Pose, target: PlacedTarget, border_px: fl
 
 
 def frame_truth(camera: Camera, pose: Pose, scene: Scene, degradation: dict[str, Any] | None = None) -> FrameTruth:
+    """Ground truth of a frame without rendering it.
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform.
+    scene : Scene
+    degradation : dict, optional
+        Recorded in the truth as given.
+
+    Returns
+    -------
+    FrameTruth
+    """
     truths = [t for t in (target_truth(camera, pose, target) for target in scene.targets) if t is not None]
     return FrameTruth(pose=pose, camera=camera, targets=truths, degradation=degradation or {})
 
@@ -514,10 +848,29 @@ def render_frame(
     occlusion_probability: float = 0.0,
     supersample: int = 2,
 ) -> tuple[np.ndarray, FrameTruth]:
-    """Render one uint8 greyscale frame and its ground truth.
+    """Render one frame and its ground truth.
 
-    With ``occlusion_probability`` a visible target may be partly covered by a piece of
-    photograph; discs whose centre it covers are marked not visible.
+    Parameters
+    ----------
+    scene : Scene
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform.
+    rng : numpy.random.Generator
+        Draws the occlusion and the sensor noise.
+    degradation : Degradation, optional
+        Applied to the rendered image; none by default.
+    occlusion_probability : float, optional
+        Chance that a visible target is partly covered by a piece of photograph; discs
+        whose centre it covers are marked not visible.
+    supersample : int, optional
+        Samples per pixel along each axis (`render`).
+
+    Returns
+    -------
+    image : (height, width) ndarray of uint8
+        The greyscale frame.
+    truth : FrameTruth
     """
     image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
     truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
@@ -564,7 +917,28 @@ def _occlude_one(image: np.ndarray, truth: FrameTruth, target: TargetTruth,
 
 @dataclass(frozen=True)
 class FrameScenario:
-    """How to draw one single-frame test image: targets, distances, degradations."""
+    """How to draw one single-frame test image: targets, distances, degradations.
+
+    Attributes
+    ----------
+    name : str
+    n_targets : tuple of int
+        Inclusive range of the number of cards.
+    distance_m, tilt_deg : tuple of float
+        Ranges of the cards' depths (metres) and tilts (degrees).
+    degradation : str
+        Name of a `degrade.PRESETS` entry.
+    marker_size_m : float
+        Side of a card, metres.
+    occlusion_probability : float
+        Chance that a visible card is partly occluded.
+    specular_on_target : bool
+        Put a glare blob on the first card.
+    clutter_tiles : tuple of int
+        (rows, cols) of photo tiles on the background.
+    focal_px : tuple of float
+        Range of the pinhole camera's focal length, pixels.
+    """
 
     name: str
     n_targets: tuple[int, int] = (1, 3)
@@ -578,6 +952,7 @@ class FrameScenario:
     focal_px: tuple[float, float] = (700.0, 900.0)
 
 
+#: The named single-frame scenarios, by name.
 SCENARIOS: dict[str, FrameScenario] = {
     s.name: s
     for s in (
@@ -607,8 +982,34 @@ def scenario_frame(
 ) -> tuple[np.ndarray, FrameTruth]:
     """One rendered frame of a named scenario and its ground truth.
 
-    With ``artwork`` (target id -> CardArtwork) the cards carry other markers in exactly
-    the same places: the same seed gives the same geometry and degradations.
+    The camera is a pinhole at the identity pose (looking along +z) with a focal
+    length drawn from the scenario's range.
+
+    Parameters
+    ----------
+    scenario : FrameScenario or str
+        A scenario or the name of one in `SCENARIOS`.
+    rng : numpy.random.Generator
+        Draws everything: the same seed gives the same frame.
+    width, height : int, optional
+        Image size, pixels.
+    family : str, optional
+        Code family of the cards.
+    photos : sequence of ndarray, optional
+        Background photographs; by default `builtin_photos`.
+    artwork : callable, optional
+        Target id -> CardArtwork: the cards carry other markers in exactly the same
+        places, with the same geometry and degradations for the same seed.
+
+    Returns
+    -------
+    image : (height, width) ndarray of uint8
+    truth : FrameTruth
+
+    Raises
+    ------
+    KeyError
+        If the scenario name is unknown.
     """
     spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
     photos = photos if photos is not None else builtin_photos()
@@ -643,7 +1044,26 @@ def render_walk(
     degradation: str = "default",
     supersample: int = 2,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
-    """Frames of a camera walk, each with its own sampled degradation, and their truth."""
+    """Frames of a camera walk, each with its own sampled degradation, and their truth.
+
+    Parameters
+    ----------
+    scene : Scene
+    camera : Camera
+    poses : sequence of Pose
+        Map-to-camera transforms, one per frame.
+    rng : numpy.random.Generator
+        Draws each frame's degradation and noise, in frame order.
+    degradation : str, optional
+        Name of a `degrade.PRESETS` entry.
+    supersample : int, optional
+        Samples per pixel along each axis (`render`).
+
+    Yields
+    ------
+    image : (height, width) ndarray of uint8
+    truth : FrameTruth
+    """
     ranges = degrade.PRESETS[degradation]
     for pose in poses:
         yield render_frame(scene, camera, pose, rng, ranges.sample(rng), supersample=supersample)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from app.core.detection import candidates as cand
-from app.sim import scenes
-from app.learning.adapt import adapt_classifier, label_site_image
 from app.core.detection.candidates import load_default_classifier
+from app.learning.adapt import adapt_classifier, label_site_image
+from app.sim import scenes
 
 
 @pytest.fixture(scope="module")

@@ -139,10 +139,10 @@ def test_distorted_disc_centroid(centre: list) -> None:
 
 def test_small_distorted_discs_keep_their_centroids() -> None:
     """Distortion is applied before the box filter (each pixel integrates the distorted
-    image): remapping the box-filtered image instead blurs by a sub-pixel phase that
-    varies over the frame, and moved the centroids of 3-5 px discs by 0.013 px RMS
-    (0.027 max) on these cards, as much as the detector's own error (now 0.006 / 0.013,
-    mostly this window centroid's own error on small discs)."""
+    image). Remapping the box-filtered image instead would blur by a sub-pixel phase that
+    varies over the frame and move the centroids of 3-5 px discs by ~0.013 px RMS on
+    these cards, as much as the detector's own error; what remains is mostly this
+    window centroid's own error on small discs."""
     cam = Camera.pinhole(800.0, 640, 480, dist=DIST)
     rng = np.random.default_rng(1)
     errs = []

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from app.cli import main as cli
-from app.sim import scenes
 from app.core.geometry.camera import Camera, Pose
-from app.sim.render import render
 from app.schemas import MapDocument
+from app.sim import scenes
+from app.sim.examples import BENCH_CAMERA, BENCH_ROOM, SMALL_ROOM
+from app.sim.render import render
 
 
 def _card_facing_camera(distance: float, size: float = 0.2, bend: float = 0.0, marker_id: int = 5) -> scenes.PlacedTarget:
@@ -110,8 +111,7 @@ def test_card_folded_into_the_image_by_the_distortion_is_not_visible() -> None:
     """71 degrees off axis, beyond the lens's fold (59 degrees for k1 = -0.12), the
     distortion polynomial turns back and projects the card into the image; the lens
     does not see it there (nor does the renderer draw it), so neither may the truth."""
-    camera = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]),
-                    np.array([-0.12, 0.0, 0, 0, 0]), 640, 480)
+    camera = BENCH_CAMERA
     # (r - 0.12 r^3 vanishes at r = tan 71 degrees: the card lands mid-image.)
     folded, near_axis = _card_off_axis(71.0, distance=4.0), _card_off_axis(15.0)
     cam = Pose.identity().transform(folded.discs)
@@ -128,9 +128,8 @@ def test_card_folded_into_the_image_by_the_distortion_is_not_visible() -> None:
 
 
 def test_room_targets_lie_on_the_walls_and_make_a_valid_map() -> None:
-    rng = np.random.default_rng(0)
-    size = (8.0, 6.0, 3.0)
-    scene = scenes.room_scene(rng, size, n_targets=30)
+    size = BENCH_ROOM.size
+    scene = BENCH_ROOM.scene(0)
     discs = np.array([t.discs for t in scene.targets])
     assert discs.shape == (30, 4, 3)
     assert (discs >= -0.02).all() and (discs <= np.array(size) + 0.02).all()
@@ -140,17 +139,16 @@ def test_room_targets_lie_on_the_walls_and_make_a_valid_map() -> None:
     centres = discs.mean(axis=1)
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(30) * 99
     assert gaps.min() > 0.2
-    document = MapDocument.model_validate(scene.map_document(Camera.pinhole(820.0, 640, 480)))
+    document = MapDocument.model_validate(scene.map_document(BENCH_CAMERA))
     assert sorted(t.id for t in document.targets) == list(range(30))
 
 
 def test_walks_are_smooth_inside_the_room_and_see_targets() -> None:
-    rng = np.random.default_rng(1)
-    size = (8.0, 6.0, 3.0)
-    scene = scenes.room_scene(rng, size, n_targets=30)
-    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.12, 0, 0, 0, 0])
-    for kind in ("calibration", "tracking"):
-        poses = scenes.camera_walk(rng, size, 300, kind)
+    size = BENCH_ROOM.size
+    walk = BENCH_ROOM.walk(1, 300, "calibration")
+    scene, camera, rng = walk.scene, BENCH_ROOM.camera, walk.rng
+    walks = {"calibration": walk.poses, "tracking": scenes.camera_walk(rng, size, 300, "tracking")}
+    for kind, poses in walks.items():
         positions = np.array([p.position for p in poses])
         assert (positions > 0.3).all() and (positions < np.array(size) - 0.3).all()
         assert np.linalg.norm(np.diff(positions, axis=0), axis=1).max() < 0.15
@@ -202,8 +200,8 @@ def test_cli_writes_frames_and_room_walks(tmp_path: Path) -> None:
 def test_room_cards_lie_wholly_in_front_of_their_walls() -> None:
     """A card bent into its wall would have a panel hidden by the wall while its truth
     still called every disc visible."""
-    scene = scenes.room_scene(np.random.default_rng(11), (5.0, 4.0, 2.6), n_targets=24, marker_size_m=0.25)
-    walls = scenes.room_walls((5.0, 4.0, 2.6))[:4]
+    scene = SMALL_ROOM.scene(11)
+    walls = scenes.room_walls(SMALL_ROOM.size)[:4]
     grid = np.stack(np.meshgrid(np.linspace(0, 1, 21), np.linspace(0, 1, 21)), -1).reshape(-1, 2)
     for target in scene.targets:
         wall = min(walls, key=lambda w: abs(np.dot(target.corners[0] - w.centre, w.inward)))

@@ -51,9 +51,10 @@ Coordinates: full resolution, centre of the top-left pixel at (0, 0). ``cv2.pyrD
 centres level-L pixel i on full-resolution pixel ``i * 2**L``, so a level position maps
 to full resolution by a plain ``* 2**L``.
 
-numpy/OpenCV/SciPy, and a few numba kernels (`app.core.detection.kernels`: the rest of stage 1a
-after the morphology, the window copies, the screen's correction, the suppression
-sweep) where fused loops beat chains of whole-array calls, with identical results. No
+numpy/OpenCV/SciPy, and numba kernels (`_candidates_kernels`: the rest of stage 1a after
+the morphology, the window copies, the screen's correction, the disc's geometry in its
+window, the suppression sweep) where fused loops beat chains of whole-array calls, with
+identical results. The learned parameters are fitted by `app.learning.classifier`. No
 I/O apart from `load_default_classifier` reading the file that ships inside the package.
 """
 
@@ -70,7 +71,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.core.detection import kernels
+from app.core.detection import _candidates_kernels as kernels
 
 WINDOW: int = 12
 LEVELS: int = 4
@@ -97,20 +98,36 @@ _FORMAT_VERSION = 1
 
 @dataclass(frozen=True, eq=False)  # eq=False: ndarray fields make a generated __eq__ useless
 class DiscClassifier:
-    """Trained parameters of both stages.
+    """Trained parameters of both learned stages (`app.learning.classifier` fits them),
+    stored read-only.
 
-    blob_thresholds: (LEVELS,) stage 1a, minimum dark-blob score of a local maximum at
-        each level (level 0, with ~2/3 of all windows and only small, sharp discs, can
-        afford a stricter one).
-    screen_w1 (144, H), screen_b1 (H,), screen_w2 (H,), screen_b2, screen_threshold:
-        stage 1b, a one-hidden-layer perceptron on the normalised window x,
+    Parameters
+    ----------
+    blob_thresholds : ndarray, shape (LEVELS,)
+        Stage 1a: the smallest dark-blob score of a local maximum at each level (level 0,
+        with ~2/3 of all windows and only small, sharp discs, can afford a stricter one);
+        one number stands for every level.
+    screen_w1 : ndarray, shape (144, H)
+    screen_b1 : ndarray, shape (H,)
+    screen_w2 : ndarray, shape (H,)
+    screen_b2 : float
+    screen_threshold : float
+        Stage 1b, a one-hidden-layer perceptron on the normalised window x, passes
         ``w2 . relu(x W1 + b1) + b2 > screen_threshold``.
-    prototypes: (M, 144) float32 condensed training windows, normalised (zero mean,
-        unit norm); labels: (M,) int8, 1 disc, 0 not.
-    nn_threshold: stage 2 accepts a window when (distance to the nearest negative
-        prototype) - (distance to the nearest positive) > nn_threshold; 0 is the plain
-        1-NN rule.
-    stats: training statistics (JSON-able).
+    prototypes : ndarray, shape (M, 144)
+        Condensed training windows, normalised (zero mean, unit norm).
+    labels : ndarray, shape (M,)
+        1 for a disc prototype, 0 for a non-disc one (at least one of each).
+    nn_threshold : float
+        Stage 2 accepts a window when (distance to the nearest negative prototype) -
+        (distance to the nearest positive) > nn_threshold; 0 is the plain 1-NN rule.
+    stats : dict
+        Training statistics (JSON-able).
+
+    Raises
+    ------
+    ValueError
+        Arrays of the wrong shape, non-finite values, or labels other than 0 and 1.
     """
 
     blob_thresholds: np.ndarray
@@ -161,19 +178,37 @@ class DiscClassifier:
             a.setflags(write=False)
             object.__setattr__(self, name, a)
         object.__setattr__(self, "stats", dict(self.stats))
-        # Column sums of W1, for `_screen_raw`; and prototypes split by class once
-        # (stage 2 needs the nearest of each class).
+        # Column sums of W1 and W1 with a column of ones, for `_screen_gathered`; and the
+        # prototypes split by class once (stage 2 needs the nearest of each class).
         object.__setattr__(self, "_w1_sum", w1.sum(axis=0))
-        object.__setattr__(self, "_w1_ext", np.ascontiguousarray(np.concatenate([w1, np.ones((_DIM, 1), np.float32)], 1)))
+        w1_ext = np.ascontiguousarray(np.concatenate([w1, np.ones((_DIM, 1), np.float32)], 1))
+        object.__setattr__(self, "_w1_ext", w1_ext)
         object.__setattr__(self, "_pos", np.ascontiguousarray(protos[labels == 1].T))
         object.__setattr__(self, "_neg", np.ascontiguousarray(protos[labels == 0].T))
 
     def replace(self, **changes: Any) -> DiscClassifier:
-        """A copy with some fields changed (thresholds, stats)."""
+        """A copy with some fields changed (thresholds, stats).
+
+        Parameters
+        ----------
+        **changes
+            Fields and their new values.
+
+        Returns
+        -------
+        DiscClassifier
+            The copy, checked like a new classifier.
+        """
         return dataclasses.replace(self, **changes)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Every parameter as a named array (scalars as 0-d arrays), for .npy storage."""
+        """Every parameter as a named array (scalars as 0-d arrays), for .npy storage.
+
+        Returns
+        -------
+        dict of str to ndarray
+            The parameters, with the storage format version and the window size.
+        """
         return {
             "format_version": np.array(_FORMAT_VERSION, dtype=np.int32),
             "window": np.array(WINDOW, dtype=np.int32),
@@ -190,7 +225,21 @@ class DiscClassifier:
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], stats: dict[str, Any] | None = None) -> DiscClassifier:
-        """Inverse of `to_arrays`; ValueError on a missing or malformed array."""
+        """The classifier stored by `to_arrays`.
+
+        Parameters
+        ----------
+        arrays : dict of str to ndarray
+            Arrays as `to_arrays` names them.
+        stats : dict, optional
+            Training statistics.
+
+        Returns
+        -------
+        DiscClassifier
+            The classifier; ValueError on a missing or malformed array, another format
+            version or another window size.
+        """
         required = ("blob_thresholds", "screen_w1", "screen_b1", "screen_w2", "screen_b2", "screen_threshold",
                     "prototypes", "labels")
         missing = [k for k in required if k not in arrays]
@@ -224,8 +273,14 @@ class DiscClassifier:
 
 
 def load_default_classifier() -> DiscClassifier:
-    """The classifier shipped with the package (``app/data/default_classifier.npz``,
-    made by ``scripts/train_default_classifier.py``)."""
+    """The classifier shipped with the package.
+
+    Returns
+    -------
+    DiscClassifier
+        The parameters in ``app/data/default_classifier.npz`` (made by
+        ``scripts/train_default_classifier.py``), with their training statistics.
+    """
     from importlib import resources
 
     with resources.files("app.data").joinpath("default_classifier.npz").open("rb") as fh:
@@ -284,7 +339,19 @@ def _thread_workspace() -> _Workspace:
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
-    """uint8 greyscale from uint8 greyscale, BGR or BGRA; ValueError otherwise."""
+    """The image as the candidate stage reads it.
+
+    Parameters
+    ----------
+    image : ndarray
+        uint8 greyscale (H, W) or (H, W, 1), BGR or BGRA, at least `MIN_SIDE` pixels on
+        each side.
+
+    Returns
+    -------
+    ndarray
+        Contiguous uint8 greyscale (H, W); ValueError for any other input.
+    """
     a = np.asarray(image)
     if a.dtype != np.uint8:
         raise ValueError(f"expected a uint8 image, got {a.dtype}")
@@ -300,8 +367,22 @@ def as_gray(image: np.ndarray) -> np.ndarray:
 
 
 def pyramid(gray: np.ndarray, workspace: _Workspace | None = None) -> list[np.ndarray]:
-    """Up to `LEVELS` uint8 levels, each halved by ``cv2.pyrDown``; levels with a side
-    shorter than half a window are left out (nothing to find there)."""
+    """The image pyramid the windows are scanned on.
+
+    Parameters
+    ----------
+    gray : ndarray
+        uint8 greyscale image (level 0).
+    workspace : _Workspace, optional
+        Buffers for the levels above 0 (valid until the workspace is next used for an
+        image of this size).
+
+    Returns
+    -------
+    list of ndarray
+        Up to `LEVELS` uint8 levels, each halved by ``cv2.pyrDown``; levels with a side
+        shorter than half a window are left out (nothing to find there).
+    """
     levels = [gray]
     while len(levels) < LEVELS:
         h, w = levels[-1].shape
@@ -313,7 +394,18 @@ def pyramid(gray: np.ndarray, workspace: _Workspace | None = None) -> list[np.nd
 
 
 def pyramid_window_count(shape: tuple[int, int]) -> int:
-    """Windows a full scan examines: one per pixel position of every level."""
+    """How many windows a full scan examines: one per pixel position of every level.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The image's (height, width).
+
+    Returns
+    -------
+    int
+        The window count over the pyramid.
+    """
     h, w = shape[:2]
     total = 0
     for level in range(LEVELS):
@@ -330,8 +422,21 @@ def pyramid_window_count(shape: tuple[int, int]) -> int:
 
 
 def pad_level(level: np.ndarray, workspace: _Workspace | None = None) -> np.ndarray:
-    """The level with a replicated border of half a window, so that windows centred on
-    any pixel of the level (including at its very edge) exist."""
+    """A level with a replicated border of half a window, so that windows centred on any
+    pixel of the level (including at its very edge) exist.
+
+    Parameters
+    ----------
+    level : ndarray
+        uint8 pyramid level (h, w).
+    workspace : _Workspace, optional
+        A buffer for the result.
+
+    Returns
+    -------
+    ndarray
+        uint8 (h + 12, w + 12).
+    """
     h, w = level.shape
     dst = None if workspace is None else workspace.get("pad", (h + WINDOW, w + WINDOW), np.uint8)
     return cv2.copyMakeBorder(level, _HALF, _HALF, _HALF, _HALF, cv2.BORDER_REPLICATE, dst=dst)
@@ -354,21 +459,28 @@ def _tophat_integral(padded: np.ndarray, ws: _Workspace) -> tuple[np.ndarray, np
 
 
 def blob_scores(padded: np.ndarray, workspace: _Workspace | None = None) -> np.ndarray:
-    """Stage-1a score of every 12x12 window lying wholly inside `padded` (a level with
-    a replicated border, see `pad_level`).
+    """Stage-1a score of every 12x12 window lying wholly inside a padded level.
 
-    Returns float32 of shape (h - 11, w - 11): entry (y, x) scores the window
-    ``padded[y : y + 12, x : x + 12]``. Unitless, about -1..1; a clean disc of the
-    level's size range scores 0.4-0.8.
+    Parameters
+    ----------
+    padded : ndarray
+        uint8 level with a replicated border (`pad_level`), shape (h, w).
+    workspace : _Workspace, optional
+        Buffers for every intermediate and the result (valid until the workspace is
+        next used for an image of this size); without, fresh arrays.
 
-    With a `workspace` every intermediate and the result live in its buffers (valid
-    until the workspace is next used for an image of this size); without, fresh arrays.
+    Returns
+    -------
+    ndarray
+        float32 (h - 11, w - 11): entry (y, x) scores the window
+        ``padded[y : y + 12, x : x + 12]``. Unitless, about -1..1; a clean disc of the
+        level's size range scores 0.4-0.8.
     """
     ws = workspace if workspace is not None else _Workspace()
     h, w = padded.shape
     integral, dil, ero = _tophat_integral(padded, ws)
     # (centre mean - window mean) / (range + eps) from the window sums, in one compiled
-    # pass with the arithmetic of the OpenCV calls it replaced
+    # pass with the arithmetic of the OpenCV calls of its reference
     score = ws.get("blob", (h - WINDOW + 1, w - WINDOW + 1), np.float32)
     kernels.blob_ratio(integral, dil, ero, np.float32(_RANGE_EPS), score)
     return score
@@ -389,8 +501,22 @@ def _threshold32(threshold: float) -> np.float32:
 
 def local_maxima(score: np.ndarray, threshold: float, workspace: _Workspace | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """(ys, xs) int arrays of 3x3 local maxima of `score` strictly above `threshold`,
-    in row-major order."""
+    """The 3x3 local maxima of a score image above a threshold.
+
+    Parameters
+    ----------
+    score : ndarray
+        float32 scores (h, w).
+    threshold : float
+        Maxima must lie strictly above it.
+    workspace : _Workspace, optional
+        Scratch buffers.
+
+    Returns
+    -------
+    ys, xs : ndarray of intp
+        Rows and columns of the maxima, in row-major order.
+    """
     ws = workspace if workspace is not None else _Workspace()
     max3, row_mask, ys, xs = _maxima_buffers(score.shape, ws)
     n = kernels.local_maxima(np.ascontiguousarray(score, np.float32), _threshold32(threshold), max3, row_mask, ys, xs)
@@ -412,15 +538,38 @@ def _blob_maxima(padded: np.ndarray, threshold: float, ws: _Workspace) -> tuple[
 
 
 def stage1_scores(level: np.ndarray) -> np.ndarray:
-    """Dense stage-1a score of every window of one pyramid level (uint8, H x W):
-    float32 (H + 1, W + 1), entry (y, x) for the window centred at level position
-    (x - 0.5, y - 0.5)."""
+    """Dense stage-1a score of every window of one pyramid level.
+
+    Parameters
+    ----------
+    level : ndarray
+        uint8 level (H, W).
+
+    Returns
+    -------
+    ndarray
+        float32 (H + 1, W + 1), entry (y, x) for the window centred at level position
+        (x - 0.5, y - 0.5).
+    """
     return blob_scores(pad_level(np.ascontiguousarray(level, dtype=np.uint8)))
 
 
 def stage1_mask(level: np.ndarray, threshold: float) -> np.ndarray:
-    """bool (H + 1, W + 1): the windows of one level stage 1a passes (3x3 local maxima of
-    `stage1_scores` above `threshold`), indexed as `stage1_scores`."""
+    """The windows of one level that stage 1a passes.
+
+    Parameters
+    ----------
+    level : ndarray
+        uint8 level (H, W).
+    threshold : float
+        The level's blob threshold.
+
+    Returns
+    -------
+    ndarray of bool
+        (H + 1, W + 1), indexed as `stage1_scores`: the 3x3 local maxima of its scores
+        above `threshold`.
+    """
     score = stage1_scores(level)
     mask = np.zeros(score.shape, bool)
     ys, xs = local_maxima(score, threshold)
@@ -434,7 +583,20 @@ def stage1_mask(level: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def extract_windows(padded: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """(N, 12, 12) uint8 copies of the windows with top-left ``(ys, xs)`` of a padded level."""
+    """Copies of windows of a padded level.
+
+    Parameters
+    ----------
+    padded : ndarray
+        uint8 padded level (`pad_level`).
+    ys, xs : ndarray of int
+        Top-left corners of the windows in it.
+
+    Returns
+    -------
+    ndarray
+        uint8 (N, 12, 12).
+    """
     h, w = padded.shape
     sy, sx = padded.strides
     # A read-only strided view of every window (np.ndarray directly: as_strided costs
@@ -448,9 +610,20 @@ def extract_windows(padded: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.nd
 
 
 def normalise_windows(windows: np.ndarray) -> np.ndarray:
-    """(N, 144) float32: each window minus its mean, divided by its norm (unit vectors,
-    so squared distances are ``2 - 2 a.b``). Invariant to gain and offset; a flat window
-    becomes ~0 rather than NaN."""
+    """Windows normalised for the screen and stage 2: each minus its mean, divided by its
+    norm (unit vectors, so squared distances are ``2 - 2 a.b``). Invariant to gain and
+    offset; a flat window becomes ~0 rather than NaN.
+
+    Parameters
+    ----------
+    windows : ndarray, shape (N, 12, 12) or (N, 144)
+        Raw windows.
+
+    Returns
+    -------
+    ndarray
+        float32 (N, 144).
+    """
     w = np.asarray(windows, dtype=np.float32).reshape(-1, _DIM)
     w = w - w.mean(axis=1, keepdims=True)
     norm = np.sqrt(np.einsum("ij,ij->i", w, w))
@@ -459,7 +632,20 @@ def normalise_windows(windows: np.ndarray) -> np.ndarray:
 
 
 def screen_scores(normalised: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
-    """Stage-1b score of normalised windows (N, 144): ``w2 . relu(x W1 + b1) + b2``."""
+    """Stage-1b score of normalised windows: ``w2 . relu(x W1 + b1) + b2``.
+
+    Parameters
+    ----------
+    normalised : ndarray, shape (N, 144)
+        Windows from `normalise_windows`.
+    classifier : DiscClassifier
+        Its screen's weights.
+
+    Returns
+    -------
+    ndarray
+        float32 (N,); the screen passes scores above ``classifier.screen_threshold``.
+    """
     hidden = np.asarray(normalised, np.float32) @ classifier.screen_w1
     hidden += classifier.screen_b1
     np.maximum(hidden, 0.0, out=hidden)
@@ -473,8 +659,9 @@ def _screen_gathered(flat: np.ndarray, sums: np.ndarray, sums_sq: np.ndarray, cl
     ``x W1 = (w W1 - mean(w) 1 W1) / |w - mean(w)|``, one product and a cheap
     correction (`kernels.screen_hidden`) instead of a pass over every pixel of every
     window."""
-    # (W1 extended by a column of ones, whose product column is not used any more: the
-    # product of the same shape keeps BLAS's float32 sums, and so the scores, as they were)
+    # (W1 extended by a column of ones, whose product column goes unused: BLAS's float32
+    # sums depend on the shape of the product, and this shape gives the screen scores the
+    # tests' reference computes)
     product = flat @ classifier._w1_ext  # type: ignore[attr-defined]
     hidden = product[:, :-1]
     kernels.screen_hidden(hidden, sums, sums_sq, classifier._w1_sum,  # type: ignore[attr-defined]
@@ -483,8 +670,22 @@ def _screen_gathered(flat: np.ndarray, sums: np.ndarray, sums_sq: np.ndarray, cl
 
 
 def nn_scores(normalised: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
-    """Stage-2 score of normalised windows: distance to the nearest negative prototype
-    minus distance to the nearest positive one (> 0: the nearest example is a disc)."""
+    """Stage-2 score of normalised windows: the distance to the nearest negative prototype
+    minus the distance to the nearest positive one.
+
+    Parameters
+    ----------
+    normalised : ndarray, shape (N, 144)
+        Windows from `normalise_windows`.
+    classifier : DiscClassifier
+        Its prototypes.
+
+    Returns
+    -------
+    ndarray
+        float32 (N,); > 0: the nearest prototype is a disc; stage 2 accepts scores above
+        ``classifier.nn_threshold``.
+    """
     x = np.ascontiguousarray(normalised, dtype=np.float32)
     if x.shape[0] == 0:
         return np.zeros(0, np.float32)
@@ -499,7 +700,20 @@ def nn_scores(normalised: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
 
 
 def classify_windows(windows: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
-    """Stage 2 alone on raw (N, 12, 12) windows: `nn_scores` of the normalised windows."""
+    """Stage 2 alone on raw windows: `nn_scores` of the normalised windows.
+
+    Parameters
+    ----------
+    windows : ndarray, shape (N, 12, 12)
+        Raw windows; ValueError for another shape.
+    classifier : DiscClassifier
+        Its prototypes.
+
+    Returns
+    -------
+    ndarray
+        float32 (N,) stage-2 scores.
+    """
     w = np.asarray(windows)
     if w.ndim != 3 or w.shape[1:] != (WINDOW, WINDOW):
         raise ValueError(f"windows must have shape (N, {WINDOW}, {WINDOW}), got {w.shape}")
@@ -526,27 +740,53 @@ _RADIUS_GAIN = 1.19
 
 
 def window_radius(windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Disc radius (N,) in pixels of the window's level, and the grey level (N,) halfway
-    between the disc and its surround.
+    """The disc's radius in each window, from its radial profile.
 
-    The radial profile (mean grey level in 1-px rings about the window centre) is
-    followed out from the darkest of the two inner rings until it crosses halfway to the
-    brightest ring beyond; the crossing is interpolated and scaled by `_RADIUS_GAIN`.
+    The profile (mean grey level in 1-px rings about the window centre) is followed out
+    from the darkest of the two inner rings until it crosses halfway to the brightest ring
+    beyond; the crossing is interpolated and scaled by `_RADIUS_GAIN`.
+
+    Parameters
+    ----------
+    windows : ndarray, shape (N, 12, 12) or (N, 144)
+        Raw windows.
+
+    Returns
+    -------
+    radius : ndarray
+        float32 (N,) disc radii in pixels of the windows' level.
+    half : ndarray
+        float32 (N,) grey level halfway between the disc and its surround.
     """
     w = np.asarray(windows, dtype=np.float32).reshape(-1, _DIM)
-    prof = w @ _RINGS  # (N, 6): BLAS's float32 sums, as they were
+    prof = w @ _RINGS  # (N, 6): a BLAS product (its float32 sums are part of the result)
     # the rest per window in one compiled loop (`kernels.ring_radius`: the same float32
-    # steps as the numpy chain it replaced, without ~15 calls' overhead)
+    # steps as its numpy reference, without ~15 calls' overhead)
     radius, half = np.empty(w.shape[0], np.float32), np.empty(w.shape[0], np.float32)
     kernels.ring_radius(prof, _RING_MID, np.float32(_RADIUS_GAIN), radius, half)
     return radius, half
 
 
 def window_centroid(windows: np.ndarray, radius: np.ndarray, half: np.ndarray, iterations: int = 2) -> np.ndarray:
-    """Sub-pixel offset (N, 2) of the dark disc from the window centre, in pixels of the
-    window's level: the centroid of darkness (`half` minus grey level, clipped at 0)
-    inside a circular aperture of the disc radius plus a pixel, re-centred on the
-    previous estimate `iterations - 1` times, so neighbours in the window barely pull."""
+    """Sub-pixel offset of the dark disc from each window's centre: the centroid of darkness
+    (`half` minus grey level, clipped at 0) inside a circular aperture of the disc radius
+    plus a pixel, re-centred on the previous estimate `iterations - 1` times, so
+    neighbours in the window barely pull.
+
+    Parameters
+    ----------
+    windows : ndarray, shape (N, 12, 12) or (N, 144)
+        Raw windows.
+    radius, half : ndarray, shape (N,)
+        From `window_radius`.
+    iterations : int
+        Centroid passes.
+
+    Returns
+    -------
+    ndarray
+        float32 (N, 2) offsets (x, y) in pixels of the windows' level, each within 2 px.
+    """
     w = np.ascontiguousarray(windows, dtype=np.float32).reshape(-1, _DIM)
     half = np.ascontiguousarray(half, np.float32)
     reach2 = (np.asarray(radius, np.float32) + np.float32(1.0)) ** 2
@@ -554,14 +794,29 @@ def window_centroid(windows: np.ndarray, radius: np.ndarray, half: np.ndarray, i
     weight, total = np.empty_like(w), np.empty(w.shape[0], np.float32)
     for it in range(iterations):
         # darkness in the aperture and its sum fused (`kernels.centroid_weights`); the
-        # moments stay a BLAS product, so its float32 sums are as they were
+        # moments stay a BLAS product (its float32 sums are part of the result)
         kernels.centroid_weights(w, half, reach2, _DX, _DY, _DIST2, offset, it == 0, weight, total)
         kernels.centroid_offset(weight @ _DXY, total, offset)
     return offset
 
 
 def window_geometry(windows: np.ndarray, iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """(offset (N, 2), radius (N,)) of the disc in each window, in its level's pixels."""
+    """Where the disc is in each window, and how big.
+
+    Parameters
+    ----------
+    windows : ndarray, shape (N, 12, 12) or (N, 144)
+        Raw windows.
+    iterations : int
+        Centroid passes (`window_centroid`).
+
+    Returns
+    -------
+    offset : ndarray
+        float32 (N, 2) from the window centre, in pixels of the windows' level.
+    radius : ndarray
+        float32 (N,) in pixels of the windows' level.
+    """
     w = np.asarray(windows, dtype=np.float32).reshape(-1, _DIM)
     if w.shape[0] == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
@@ -573,11 +828,27 @@ def window_geometry(windows: np.ndarray, iterations: int = 2) -> tuple[np.ndarra
 class Stage1Windows:
     """Windows that passed stage 1 (1a, and the screen unless skipped), and where they are.
 
-    windows: (N, 12, 12) uint8 raw; level: (N,) int8; centre: (N, 2) window centres in
-    pixels of their level; blob: (N,) stage-1a score; screen: (N,) stage-1b score;
-    total_windows: windows a full scan examines; padded_levels: the padded pyramid; levels: the pyramid
-    (`pyramid`). The levels above 0 and the padded levels may be buffers of the
-    thread's workspace: valid until the next detection on the same thread.
+    The levels above 0 and the padded levels may be buffers of the thread's workspace:
+    valid until the next detection on the same thread.
+
+    Parameters
+    ----------
+    windows : ndarray
+        uint8 (N, 12, 12) raw windows.
+    level : ndarray
+        int8 (N,) pyramid level of each.
+    centre : ndarray
+        float32 (N, 2) window centres in pixels of their level.
+    blob : ndarray
+        float32 (N,) stage-1a scores.
+    screen : ndarray
+        float32 (N,) stage-1b scores.
+    total_windows : int
+        Windows a full scan examines.
+    padded_levels : tuple of ndarray
+        The padded pyramid.
+    levels : tuple of ndarray
+        The pyramid (`pyramid`).
     """
 
     windows: np.ndarray
@@ -593,18 +864,39 @@ class Stage1Windows:
         return int(self.level.shape[0])
 
     def full_resolution_centres(self) -> np.ndarray:
-        """(N, 2) window centres in full-resolution pixels."""
+        """The window centres in full-resolution pixels.
+
+        Returns
+        -------
+        ndarray
+            float32 (N, 2).
+        """
         return self.centre * (np.float32(2.0) ** self.level.astype(np.float32))[:, None]
 
 
 def scan_levels(gray: np.ndarray, blob_thresholds: float | Sequence[float], workspace: _Workspace | None = None
                 ) -> list[tuple[int, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray]]:
-    """Stage 1a over the pyramid: per level ``(level, padded, pad, ys, xs, blob)``: the
-    level with a replicated border of `pad` pixels, the top-left corners (in it) of the
-    windows at 3x3 local maxima of the blob score above the level's threshold, and
-    their scores. A window at top-left (y, x) is centred at level position
-    ``(x + 5.5 - pad, y + 5.5 - pad)``; every window centred on the level (-0.5 .. size
-    - 0.5) is examined. With a `workspace` the padded levels are its buffers."""
+    """Stage 1a over the pyramid: the windows at 3x3 local maxima of the blob score above
+    each level's threshold. Every window centred on a level (-0.5 .. size - 0.5) is
+    examined.
+
+    Parameters
+    ----------
+    gray : ndarray
+        uint8 greyscale image.
+    blob_thresholds : float or sequence of float
+        Per level (one number for all).
+    workspace : _Workspace, optional
+        Buffers for the padded levels.
+
+    Returns
+    -------
+    list of tuple
+        Per level ``(level, padded, pad, ys, xs, blob)``: the level with a replicated
+        border of `pad` pixels, the top-left corners (in it) of the windows, and their
+        scores. A window at top-left (y, x) is centred at level position
+        ``(x + 5.5 - pad, y + 5.5 - pad)``.
+    """
     return _scan(gray, blob_thresholds, workspace)[1]
 
 
@@ -625,10 +917,26 @@ def _scan(gray: np.ndarray, blob_thresholds: float | Sequence[float], workspace:
 def stage1_windows(image: np.ndarray, classifier: DiscClassifier, apply_screen: bool = True,
                    blob_thresholds: float | Sequence[float] | None = None,
                    workspace: _Workspace | None = None) -> Stage1Windows:
-    """Run stage 1 over the pyramid of `image`: the windows that reach stage 2.
+    """Stage 1 over the pyramid of an image: the windows that reach stage 2.
 
-    ``apply_screen=False`` stops after 1a (to measure it, or to collect training
-    windows); ``blob_thresholds`` overrides the classifier's 1a thresholds.
+    Parameters
+    ----------
+    image : ndarray
+        uint8 greyscale or BGR (`as_gray`).
+    classifier : DiscClassifier
+        Its blob thresholds and screen.
+    apply_screen : bool
+        False stops after 1a (to measure it, or to collect training windows); the screen
+        scores are reported either way.
+    blob_thresholds : float or sequence of float, optional
+        Overrides the classifier's 1a thresholds.
+    workspace : _Workspace, optional
+        Buffers (default: the thread's own).
+
+    Returns
+    -------
+    Stage1Windows
+        The windows, their levels, centres and scores.
     """
     gray = as_gray(image)
     thr = classifier.blob_thresholds if blob_thresholds is None else blob_thresholds
@@ -700,12 +1008,23 @@ def _greedy(n: int, first: np.ndarray, second: np.ndarray, active: np.ndarray | 
 
 
 def suppress(candidates: np.ndarray, priority: np.ndarray | None = None) -> np.ndarray:
-    """Greedy non-maximum suppression of (N, 4) ``[u, v, radius, score]`` rows.
+    """Greedy non-maximum suppression of candidate rows.
 
-    In order of `priority` (default: the score column), a candidate is kept unless its
-    centre lies inside the disc of an already kept one (so the four discs of a card,
-    2.4 diameters apart, or 1 diameter when it is tilted by 65 degrees, stay apart).
-    Returns the indices of the kept rows, in priority order.
+    In order of `priority`, a candidate is kept unless its centre lies inside the disc of
+    an already kept one (so the four discs of a card, 2.4 diameters apart, or 1 diameter
+    when it is tilted by 65 degrees, stay apart).
+
+    Parameters
+    ----------
+    candidates : ndarray, shape (N, 4)
+        Rows ``[u, v, radius, score]``.
+    priority : ndarray, shape (N,), optional
+        Default: the score column.
+
+    Returns
+    -------
+    ndarray of intp
+        Indices of the kept rows, in priority order.
     """
     c = np.asarray(candidates, dtype=np.float32).reshape(-1, 4)
     key = c[:, 3] if priority is None else np.asarray(priority, np.float32).reshape(-1)
@@ -716,8 +1035,24 @@ def suppress(candidates: np.ndarray, priority: np.ndarray | None = None) -> np.n
 
 
 def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.ndarray, Stage1Windows, np.ndarray]:
-    """`find_candidates` with its workings: (rows (N, 4) best score first, the stage-1
-    windows, index (N,) of each row's window in them)."""
+    """`find_candidates` with its workings.
+
+    Parameters
+    ----------
+    image : ndarray
+        uint8 greyscale or BGR (`as_gray`).
+    classifier : DiscClassifier
+        The classifier.
+
+    Returns
+    -------
+    rows : ndarray
+        float32 (N, 4) candidates ``[u, v, radius, score]``, best score first.
+    windows : Stage1Windows
+        The stage-1 windows.
+    index : ndarray of intp
+        (N,) each row's window in `windows`.
+    """
     s1 = stage1_windows(image, classifier)
     n = len(s1)
     if n == 0:
@@ -758,346 +1093,28 @@ def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.nd
 
 
 def find_candidates(image: np.ndarray, classifier: DiscClassifier) -> np.ndarray:
-    """Disc candidates in a uint8 greyscale or BGR image (any size >= 24x24).
+    """Disc candidates in an image.
 
-    Returns float32 (N, 4) rows ``[u, v, radius, score]``, best score first: the disc
-    centre in full-resolution pixels (centre of the top-left pixel = (0, 0)), its radius
-    (coarse, ~15%), and the stage-2 score (> nn_threshold; higher = more disc-like).
+    Stage 1 over the pyramid; the windows of one disc (neighbouring positions and levels)
+    are grouped by non-maximum suppression in order of their screen score (it tells how
+    well a window is centred on its disc better than the 1-NN distance does), and stage 2
+    judges each group's leader; a rejected leader does not take its group down (the
+    windows only it suppressed get their turn). Centre and radius come from each accepted
+    window (`window_geometry`).
 
-    Stage 1 over the pyramid; stage 2 scores every survivor; centre and radius come from
-    each accepted window (`window_geometry`); of the accepted windows of one disc
-    (neighbouring positions and levels) non-maximum suppression keeps the one with the
-    best stage-1b score (it tells how well a window is centred on its disc better than
-    the 1-NN distance does).
+    Parameters
+    ----------
+    image : ndarray
+        uint8 greyscale or BGR, at least `MIN_SIDE` x `MIN_SIDE`; ValueError otherwise.
+    classifier : DiscClassifier
+        The classifier.
+
+    Returns
+    -------
+    ndarray
+        float32 (N, 4) rows ``[u, v, radius, score]``, best score first: the disc centre
+        in full-resolution pixels (centre of the top-left pixel = (0, 0)), its radius
+        (coarse, ~15%), and the stage-2 score (> ``classifier.nn_threshold``; higher =
+        more disc-like).
     """
     return detect_windows(image, classifier)[0]
-
-
-# --------------------------------------------------------------------------------------
-# Training
-# --------------------------------------------------------------------------------------
-
-
-
-
-def dihedral(windows: np.ndarray) -> np.ndarray:
-    """The 8 rotations and reflections of each window (N, 12, 12) -> (8N, 12, 12): a
-    disc has no preferred orientation, and neither do its neighbours."""
-    w = np.asarray(windows)
-    flipped = w[:, :, ::-1]
-    return np.concatenate([np.rot90(w, k, axes=(1, 2)) for k in range(4)]
-                          + [np.rot90(flipped, k, axes=(1, 2)) for k in range(4)])
-
-
-def fit_screen(pos: np.ndarray, neg: np.ndarray, rng: np.random.Generator, hidden: int = 16,
-               l2: float = 1e-4, max_iter: int = 250) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Stage 1b: a one-hidden-layer perceptron (ReLU) on normalised windows, fitted by
-    L-BFGS to the class-balanced logistic loss with a small weight decay.
-
-    Returns (w1 (144, H), b1 (H,), w2 (H,), b2). Deterministic for a given `rng`.
-    """
-    from scipy.optimize import minimize
-
-    x = np.ascontiguousarray(np.concatenate([pos, neg]), dtype=np.float32)
-    y = np.concatenate([np.ones(len(pos), np.float32), np.zeros(len(neg), np.float32)])
-    n, d = x.shape
-    weight = np.where(y == 1, n / (2.0 * len(pos)), n / (2.0 * len(neg))).astype(np.float32) / n
-    sizes = (d * hidden, hidden, hidden, 1)
-    cuts = np.cumsum(sizes)[:-1]
-
-    def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        a, b, c, e = np.split(theta.astype(np.float32), cuts)
-        return a.reshape(d, hidden), b, c, float(e[0])
-
-    def loss(theta: np.ndarray) -> tuple[float, np.ndarray]:
-        w1, b1, w2, b2 = unpack(theta)
-        pre = x @ w1 + b1
-        act = np.maximum(pre, 0.0)
-        z = act @ w2 + b2
-        # log(1 + exp(-z)) for positives, log(1 + exp(z)) for negatives, stably.
-        s = np.where(y == 1, -z, z)
-        value = float(np.sum(weight * (np.logaddexp(0.0, s)))) + l2 * float(np.sum(w1 * w1) + np.sum(w2 * w2))
-        p = 1.0 / (1.0 + np.exp(-np.clip(z, -30, 30)))
-        dz = weight * (p - y)
-        g_w2 = act.T @ dz + 2 * l2 * w2
-        g_b2 = np.array([dz.sum()], np.float32)
-        d_act = np.outer(dz, w2) * (pre > 0)
-        g_w1 = x.T @ d_act + 2 * l2 * w1
-        g_b1 = d_act.sum(axis=0)
-        return value, np.concatenate([g_w1.ravel(), g_b1, g_w2, g_b2]).astype(np.float64)
-
-    theta0 = np.concatenate([
-        rng.normal(0.0, 1.0 / np.sqrt(d), d * hidden), np.zeros(hidden),
-        rng.normal(0.0, 1.0 / np.sqrt(hidden), hidden), np.zeros(1),
-    ])
-    result = minimize(loss, theta0, jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
-    w1, b1, w2, b2 = unpack(result.x)
-    return w1, b1, w2, b2
-
-
-def condense(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, chunk: int = 2048,
-             max_passes: int = 50, initial: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """Hart's condensed nearest neighbour (1968): indices of a subset ("store") that
-    classifies every training example correctly by 1-NN. Examples are visited in a
-    random order; one misclassified by the current store joins it; passes repeat until
-    one adds nothing. Returns (store indices, passes).
-
-    Exact sequential semantics, but fast: each chunk's similarities to the store are one
-    matrix product, and a prototype added inside the chunk updates the rest of the chunk
-    with one vector product. Rows of x are unit vectors, so nearest = largest dot.
-
-    ``initial``: indices that start the store (e.g. an existing classifier's prototypes
-    when it is adapted to new examples: Hart's rule then adds only what they get wrong).
-    """
-    x = np.ascontiguousarray(x, dtype=np.float32)
-    y = np.asarray(y).astype(np.int8)
-    order = rng.permutation(x.shape[0])
-    start_with = [int(order[0])] if initial is None or len(initial) == 0 else [int(i) for i in initial]
-    store: list[int] = list(dict.fromkeys(start_with))
-    in_store = np.zeros(x.shape[0], bool)
-    in_store[store] = True
-    passes = 0
-    while passes < max_passes:
-        passes += 1
-        added = 0
-        for start in range(0, order.size, chunk):
-            idx = order[start : start + chunk]
-            idx = idx[~in_store[idx]]
-            if idx.size == 0:
-                continue
-            sims = x[idx] @ x[store].T  # (c, S)
-            is_pos = y[store] == 1
-            best_p = sims[:, is_pos].max(axis=1) if is_pos.any() else np.full(idx.size, -np.inf, np.float32)
-            best_n = sims[:, ~is_pos].max(axis=1) if (~is_pos).any() else np.full(idx.size, -np.inf, np.float32)
-            for j in range(idx.size):
-                label = y[idx[j]]
-                if (best_p[j] > best_n[j]) == (label == 1):
-                    continue
-                k = int(idx[j])
-                store.append(k)
-                in_store[k] = True
-                added += 1
-                if j + 1 < idx.size:
-                    s = x[idx[j + 1 :]] @ x[k]
-                    target = best_p if label == 1 else best_n
-                    np.maximum(target[j + 1 :], s, out=target[j + 1 :])
-        if added == 0:
-            break
-    return np.asarray(store, dtype=np.intp), passes
-
-
-def reduce_store(x: np.ndarray, y: np.ndarray, store: np.ndarray) -> np.ndarray:
-    """Gates' reduced nearest neighbour (1972), run after Hart's rule: visit the store
-    in order and drop a prototype when every training example is still classified
-    correctly without it. Returns the remaining store indices."""
-    x = np.ascontiguousarray(x, dtype=np.float32)
-    y = np.asarray(y).astype(np.int8)
-    store = np.asarray(store, dtype=np.intp)
-    sims = x @ x[store].T  # (N, S)
-    same = y[:, None] == y[store][None, :]
-    keep = np.ones(store.size, bool)
-    neg_inf = np.float32(-np.inf)
-
-    def best(mask_cols: np.ndarray, rows: np.ndarray, same_class: bool) -> np.ndarray:
-        sub = sims[np.ix_(rows, mask_cols)]
-        ok = same[np.ix_(rows, mask_cols)] == same_class
-        return np.where(ok, sub, neg_inf).max(axis=1) if mask_cols.size else np.full(rows.size, neg_inf)
-
-    cols = np.flatnonzero(keep)
-    rows_all = np.arange(x.shape[0])
-    other = best(cols, rows_all, False)  # nearest prototype of the other class, per example
-    for j in range(store.size):
-        keep[j] = False
-        cols = np.flatnonzero(keep)
-        # Only examples whose nearest same-class prototype was j can change.
-        affected = np.flatnonzero(same[:, j] & (sims[:, j] >= other))
-        if affected.size:
-            still = best(cols, affected, True)
-            if not np.all(still > other[affected]):
-                keep[j] = True
-    return store[keep]
-
-
-def nn_predict(x: np.ndarray, ref: np.ndarray, ref_labels: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """1-NN labels of unit rows `x` against reference unit rows (chunked)."""
-    out = np.empty(x.shape[0], np.int8)
-    ref = np.ascontiguousarray(ref, dtype=np.float32)
-    for s in range(0, x.shape[0], chunk):
-        out[s : s + chunk] = ref_labels[np.argmax(x[s : s + chunk] @ ref.T, axis=1)]
-    return out
-
-
-def train_classifier(
-    positives: np.ndarray,
-    negatives: np.ndarray,
-    rng: np.random.Generator,
-    *,
-    blob_thresholds: float | Sequence[float] = (0.25, 0.16, 0.16, 0.16),
-    screen_fn_rate: float = 0.01,
-    nn_fn_rate: float = 0.003,
-    hidden: int = 16,
-    augment: bool = True,
-    holdout: float = 0.15,
-    max_screen_examples: int = 60000,
-    max_condense_positives: int = 600,
-    max_condense_negatives: int = 600,
-    reduce: bool = True,
-    nn_negatives: np.ndarray | None = None,
-    background_images: Sequence[np.ndarray] = (),
-    stats: dict[str, Any] | None = None,
-) -> DiscClassifier:
-    """Fit the screen (stage 1b) and condense stage 2 from raw (N, 12, 12) windows.
-
-    positives: disc windows as stage 1a presents them (centred within ~1.5 level px);
-    negatives: non-disc windows, best the ones stage 1a lets through (those are the ones
-    the classifier has to tell apart).
-
-    Splits: a ``holdout`` fraction of each class is kept out for the statistics; a
-    further 10% of the positives calibrates the thresholds. ``augment`` adds the 8
-    rotations/reflections of each training positive.
-
-    * Screen: perceptron on a class-balanced subsample; threshold at ``screen_fn_rate``
-      false negatives on the calibration positives.
-    * Stage 2: Hart's rule on the training windows the screen passes (at most
-      ``max_condense_*`` of each class: the condensed set, and so the time per window,
-      grows with the examples near the boundary), then Gates' reduction (``reduce``) drops
-      prototypes the training set does not need; threshold: the 1-NN rule (0) or lower,
-      so that at most ``nn_fn_rate`` of the calibration positives the screen passes fail.
-
-    ``nn_negatives`` are extra negatives for stage 2 only (e.g. the detector's own false
-    candidates, mined on frames): those the screen passes fill up to half of the
-    stage-2 negatives.
-    ``blob_thresholds`` are the stage-1a thresholds per level (chosen by the caller on
-    whole frames: they decide which windows exist, before any of this);
-    ``background_images`` (marker-free photographs, uint8) measure the rejection factor.
-    """
-    pos_raw = _check_windows(positives, "positives")
-    neg_raw = _check_windows(negatives, "negatives")
-    if pos_raw.shape[0] < 20 or neg_raw.shape[0] < 20:
-        raise ValueError("need at least 20 positive and 20 negative windows")
-    info: dict[str, Any] = dict(stats or {})
-
-    perm_p = rng.permutation(pos_raw.shape[0])
-    n_test_p = int(round(holdout * perm_p.size))
-    n_cal_p = max(1, int(round(0.1 * perm_p.size)))
-    p_te, p_cal, p_tr = perm_p[:n_test_p], perm_p[n_test_p : n_test_p + n_cal_p], perm_p[n_test_p + n_cal_p :]
-    perm_n = rng.permutation(neg_raw.shape[0])
-    n_test_n = int(round(holdout * perm_n.size))
-    n_te, n_tr = perm_n[:n_test_n], perm_n[n_test_n:]
-
-    pos = normalise_windows(dihedral(pos_raw[p_tr]) if augment else pos_raw[p_tr])
-    neg = normalise_windows(neg_raw[n_tr])
-    cal = normalise_windows(pos_raw[p_cal])
-
-    # Stage 1b on a class-balanced subsample (the cost of L-BFGS is linear in it).
-    sp = np.sort(rng.choice(pos.shape[0], min(pos.shape[0], max_screen_examples // 2), replace=False))
-    sn = np.sort(rng.choice(neg.shape[0], min(neg.shape[0], max_screen_examples // 2), replace=False))
-    w1, b1, w2, b2 = fit_screen(pos[sp], neg[sn], rng, hidden=hidden)
-
-    def screen(x: np.ndarray) -> np.ndarray:
-        return np.maximum(x @ w1 + b1, 0.0) @ w2 + np.float32(b2)
-
-    s_cal = screen(cal)
-    screen_thr = float(np.quantile(s_cal, screen_fn_rate))
-
-    # Stage 2: Hart's rule on what the screen lets through (the rest never reaches it).
-    keep_p = np.flatnonzero(screen(pos) > screen_thr)
-    keep_n = np.flatnonzero(screen(neg) > screen_thr)
-    if keep_p.size == 0 or keep_n.size == 0:
-        raise ValueError("the screen leaves no positives or no negatives to condense")
-    if keep_p.size > max_condense_positives:
-        keep_p = np.sort(rng.choice(keep_p, max_condense_positives, replace=False))
-    extra = np.zeros((0, _DIM), np.float32)
-    if nn_negatives is not None and len(nn_negatives):
-        extra = normalise_windows(_check_windows(nn_negatives, "nn_negatives"))
-        extra = extra[screen(extra) > screen_thr]
-        if extra.shape[0] > max_condense_negatives // 2:
-            extra = extra[np.sort(rng.choice(extra.shape[0], max_condense_negatives // 2, replace=False))]
-    n_plain = max_condense_negatives - extra.shape[0]
-    if keep_n.size > n_plain:
-        keep_n = np.sort(rng.choice(keep_n, n_plain, replace=False))
-    x = np.concatenate([pos[keep_p], neg[keep_n], extra])
-    y = np.concatenate([np.ones(keep_p.size, np.int8), np.zeros(keep_n.size + extra.shape[0], np.int8)])
-    store, passes = condense(x, y, rng)
-    hart_size = int(store.size)
-    if reduce:
-        store = reduce_store(x, y, store)
-    protos, labels = x[store], y[store]
-    clf = DiscClassifier(blob_thresholds=np.broadcast_to(np.asarray(blob_thresholds, np.float32), (LEVELS,)),
-                         screen_w1=w1, screen_b1=b1, screen_w2=w2, screen_b2=b2,
-                         screen_threshold=screen_thr, prototypes=protos, labels=labels, nn_threshold=0.0)
-    cal_seen = s_cal > screen_thr
-    cal_nn = nn_scores(cal[cal_seen], clf)
-    nn_thr = min(0.0, float(np.quantile(cal_nn, nn_fn_rate))) if cal_nn.size else 0.0
-    clf = clf.replace(nn_threshold=nn_thr)
-
-    # Held-out statistics; stage 2 is judged on the windows the screen passes.
-    te_x = normalise_windows(np.concatenate([pos_raw[p_te], neg_raw[n_te]]))
-    te_y = np.concatenate([np.ones(p_te.size, np.int8), np.zeros(n_te.size, np.int8)])
-    te_s1 = screen(te_x)
-    seen = te_s1 > screen_thr
-    full_pred = nn_predict(te_x[seen], x, y)
-    cond_pred = nn_predict(te_x[seen], protos, labels)
-    te_scores = nn_scores(te_x[seen], clf)
-    ys = te_y[seen]
-
-    def rate(a: np.ndarray) -> float | None:
-        return float(np.mean(a)) if a.size else None
-
-    info.update({
-        "train_positives": int(p_tr.size),
-        "train_positives_augmented": int(pos.shape[0]),
-        "train_negatives": int(n_tr.size),
-        "heldout_positives": int(p_te.size),
-        "heldout_negatives": int(n_te.size),
-        "screen_hidden_units": int(hidden),
-        "screen_fn_rate_target": float(screen_fn_rate),
-        "screen_fn_rate_heldout": rate(te_s1[te_y == 1] <= screen_thr),
-        "screen_pass_rate_negatives_heldout": rate(te_s1[te_y == 0] > screen_thr),
-        "condensation_examples": int(x.shape[0]),
-        "condensation_mined_negatives": int(extra.shape[0]),
-        "condensation_hart_prototypes": hart_size,
-        "condensation_prototypes": int(protos.shape[0]),
-        "condensation_positive_prototypes": int((labels == 1).sum()),
-        "condensation_passes": int(passes),
-        "nn_threshold": nn_thr,
-        "heldout_agreement_condensed_vs_full": rate(full_pred == cond_pred),
-        "heldout_full_1nn_accuracy": rate(full_pred == ys),
-        "heldout_condensed_accuracy": rate(cond_pred == ys),
-        "heldout_stage2_fn_rate": rate(te_scores[ys == 1] <= nn_thr),
-        "heldout_stage2_fp_rate": rate(te_scores[ys == 0] > nn_thr),
-        "heldout_stage2_score_positive_median": float(np.median(te_scores[ys == 1])) if (ys == 1).any() else None,
-        "heldout_stage2_score_negative_median": float(np.median(te_scores[ys == 0])) if (ys == 0).any() else None,
-        "heldout_fn_rate_stage1_and_2": rate(~(seen[te_y == 1]) | (nn_scores(te_x[te_y == 1], clf) <= nn_thr)),
-    })
-    if background_images:
-        info.update(rejection_stats(clf, background_images))
-    return clf.replace(stats=info)
-
-
-def rejection_stats(classifier: DiscClassifier, images: Sequence[np.ndarray]) -> dict[str, Any]:
-    """How many of all pyramid windows of `images` (marker-free) each stage lets
-    through: the rejection factors (all windows / windows passed) of stage 1a, of
-    stage 1 (1a + screen) and of the whole stage (candidates reported)."""
-    total = passed_1a = passed = reported = 0
-    for image in images:
-        s1 = stage1_windows(image, classifier, apply_screen=False)
-        total += s1.total_windows
-        passed_1a += len(s1)
-        passed += int(np.sum(s1.screen > np.float32(classifier.screen_threshold)))
-        reported += int(find_candidates(image, classifier).shape[0])
-    return {
-        "background_windows": int(total),
-        "stage1a_rejection_factor": float(total / max(passed_1a, 1)),
-        "stage1_rejection_factor": float(total / max(passed, 1)),
-        "candidate_rejection_factor": float(total / max(reported, 1)),
-    }
-
-
-def _check_windows(windows: np.ndarray, name: str) -> np.ndarray:
-    w = np.asarray(windows)
-    if w.ndim != 3 or w.shape[1:] != (WINDOW, WINDOW):
-        raise ValueError(f"{name} must have shape (N, {WINDOW}, {WINDOW}), got {w.shape}")
-    if w.dtype != np.uint8 and not np.isfinite(w).all():
-        raise ValueError(f"{name} must be finite")
-    return w

@@ -1,6 +1,9 @@
-"""The whole fiducial detector of the paper (§4), frame in, identified targets out:
-disc candidates (fast classifier + condensed nearest neighbour over a 4-level pyramid),
-grouping by Delaunay triangulation, verification, subpixel centres, identification."""
+"""The whole fiducial detector of the paper (§4), frame in, identified targets out: disc
+candidates (`candidates`: a fast classifier and a condensed nearest neighbour over a
+4-level pyramid), then targets (`targets.assemble_targets`: grouping, verification,
+subpixel centres, identification, completion), on the whole frame or on the regions a
+tracked pose predicts (the crops scanned as one mosaic); optionally small discs' centres
+fitted for the survey (`disc_fit`)."""
 
 from __future__ import annotations
 
@@ -12,15 +15,30 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.core.detection.candidates import MIN_SIDE, DiscClassifier, detect_windows
-from app.core.markers import DEFAULT_FAMILY, get_family
-from app.core.geometry.regions import Region
 from app.core.detection.disc_fit import fit_disc_centres
 from app.core.detection.targets import DetectedTarget, assemble_targets
-from app.core.geometry.homography import homographies
+from app.core.geometry import Region, homographies
+from app.core.markers import DEFAULT_FAMILY, get_family
+
+__all__ = ["Detection", "Detector"]
+
 
 @dataclass(frozen=True)
 class Detection:
-    """Targets found in one frame, every candidate disc, and where the time went."""
+    """Targets found in one frame, every candidate disc, and where the time went.
+
+    Parameters
+    ----------
+    targets : list of DetectedTarget
+        The identified targets, by id.
+    candidates : ndarray, shape (N, 4)
+        Every disc candidate ``[u, v, radius, score]`` in full-frame pixels.
+    timing_ms : dict
+        Milliseconds of ``candidates``, ``targets`` (and of its sub-stages, as
+        ``targets.group`` etc.; ``targets.fit`` with `Detector.fit_discs`) and the
+        whole ``detect``; ``regions``: how many crops were scanned (absent for a
+        full-frame scan).
+    """
 
     targets: list[DetectedTarget]
     candidates: np.ndarray  # (N, 4) [u, v, radius, score]
@@ -29,11 +47,22 @@ class Detection:
 
 @dataclass(frozen=True, eq=False)
 class Detector:
-    """`fit_discs`: fit the centres of small discs (semi-major axis up to 8 px) with a
-    model of the card around each (`disc_fit`) instead of keeping the detector's
-    centroids: median error 0.010 px instead of 0.014 on the survey bench's walks, 0.018
-    instead of 0.029 on discs of 1.5-2 px minor semi-axis (bench/bench_disc_fit.py); ~13 ms
-    more per frame. For the survey, not for live tracking."""
+    """The detector: a disc classifier and the code family of the targets.
+
+    Parameters
+    ----------
+    classifier : DiscClassifier
+        The candidate stage's classifier (`load_default_classifier`, or one adapted to
+        a site).
+    family : str
+        The code family of the targets; KeyError if there is none of that name.
+    fit_discs : bool
+        Fit the centres of small discs (semi-major axis up to 8 px) with a model of the
+        card around each (`disc_fit`) instead of keeping the refined centroids: median
+        error 0.010 px instead of 0.014 on the survey bench's walks, 0.018 instead of
+        0.029 on discs of 1.5-2 px minor semi-axis (bench/bench_disc_fit.py); ~13 ms
+        more per frame. For the survey, not for live tracking.
+    """
 
     classifier: DiscClassifier
     family: str = DEFAULT_FAMILY
@@ -43,14 +72,25 @@ class Detector:
         get_family(self.family)  # KeyError now rather than at the first frame
 
     def detect(self, gray: np.ndarray, regions: Sequence[Region] | None = None) -> Detection:
-        """Detect targets in a uint8 greyscale frame; with `regions`, only in those crops.
+        """Detect targets in a frame; with `regions`, only in those crops.
 
         Disc candidates are searched in the crops only; targets are then assembled from
         them on the whole frame, in full-frame pixels. Crops should start at multiples
-        of 8 pixels (see app.core.geometry.regions): then a disc well inside a crop gets the same
-        candidate, and its target the same disc centres, as in a full scan. A disc seen
-        by two overlapping crops counts once. ``timing_ms`` adds ``regions`` (how many
-        crops were scanned; absent for a full-frame scan).
+        of 8 pixels (see `app.core.geometry.predict_regions`): then a disc well inside a
+        crop gets the same candidate, and its target the same disc centres, as in a full
+        scan. A disc seen by two overlapping crops counts once.
+
+        Parameters
+        ----------
+        gray : ndarray
+            The frame, uint8 greyscale; ValueError otherwise.
+        regions : sequence of Region, optional
+            Crops to search (full-frame pixels); None: the whole frame.
+
+        Returns
+        -------
+        Detection
+            The targets, the candidates and the timings.
         """
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise ValueError(f"expected a uint8 greyscale image, got {gray.dtype} {gray.shape}")

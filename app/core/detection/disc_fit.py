@@ -1,6 +1,6 @@
 """Disc centres by fitting a model of the printed card around each disc (for the survey).
 
-The detector's centres (`targets.refine_centres`: a darkness centroid in a window that
+The detector's centres (`refinement.refine_centres`: a darkness centroid in a window that
 is the image of a circle around the disc) are fast, and within ~0.001 px on discs of
 8 px and more seen face-on. On small or foreshortened discs the window cannot hold the
 blurred disc without part of the card's edge (0.6 disc radii away on the card), the
@@ -15,9 +15,9 @@ code area and a margin around it are left out) are modelled as
     I(p) = G + (A - G) * card(p) - B * ink(p)
 
 (the blurred image of the printed card: blurring is linear, and the disc lies inside
-the card, so the blurred disc is subtracted as it is; multiplying it by the blurred
-card, as an earlier version did, took ink away near the card's edge and moved thin
-discs outward by up to ~8 mpx under a blur of 0.6 px), with ``ink = Phi(-d / s)`` and
+the card, so the blurred disc is subtracted as it is; multiplied by the blurred card it
+would lose ink near the card's edge and move thin discs outward by up to ~8 mpx under
+a blur of 0.6 px), with ``ink = Phi(-d / s)`` and
 ``card = Phi(-(d_u - e_u) / s) * Phi(-(d_v - e_v) / s)``:
 
 - d: the signed distance (pixels, first order) to the disc's image ellipse. Its shape
@@ -47,8 +47,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
+from app.core.geometry import apply_homographies
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS
-from app.core.geometry.homography import apply_homographies
+
+__all__ = ["FIT_MAX_RADIUS_PX", "DiscFit", "fit_disc_centres"]
 
 #: Discs whose image ellipse has a semi-major axis above this (px) keep the centroid:
 #: there it is already within ~0.001 px, and the fit's patch would be large.
@@ -78,9 +80,19 @@ _OUTWARD = np.where(DISC_CENTRES < 0.5, -1.0, 1.0)
 
 @dataclass(frozen=True)
 class DiscFit:
-    """Fitted disc centres (T, 4, 2) (the given ones where not fitted), which were
-    fitted (T, 4), the fitted blur s (T, 4, px; NaN where not fitted) and the residual
-    RMS (T, 4, grey levels; NaN where not fitted)."""
+    """The disc fit of T cards (`fit_disc_centres`).
+
+    Parameters
+    ----------
+    centres : ndarray, shape (T, 4, 2)
+        Fitted disc centres in pixels; the given ones where not fitted.
+    fitted : ndarray of bool, shape (T, 4)
+        Which discs were fitted.
+    blur_px : ndarray, shape (T, 4)
+        The fitted blur s in pixels; NaN where not fitted.
+    rms : ndarray, shape (T, 4)
+        The residual RMS in grey levels; NaN where not fitted.
+    """
 
     centres: np.ndarray
     fitted: np.ndarray
@@ -122,9 +134,30 @@ def _image_lines(hinv: np.ndarray, lines_card: np.ndarray, inside: np.ndarray) -
 
 def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarray,
                      max_radius_px: float = FIT_MAX_RADIUS_PX) -> DiscFit:
-    """Fit the disc centres of cards in the greyscale image `gray`: `discs` (T, 4, 2)
-    the detector's centres in DESIGN.md order, `homographies` (T, 3, 3) card units ->
-    pixels (`homography.homographies` of `discs`)."""
+    """Fit the disc centres of cards with a model of the card around each disc.
+
+    A disc is fitted when its image ellipse's semi-major axis is at most
+    `max_radius_px` and its patch lies in the image; a fit that moves the centre by
+    `MAX_SHIFT_PX` or more, or rests on fewer than `MIN_PIXELS` pixels, is not
+    trusted (the given centre stays).
+
+    Parameters
+    ----------
+    gray : ndarray
+        The frame, greyscale.
+    discs : ndarray, shape (T, 4, 2)
+        The detector's disc centres in pixels, in printed order.
+    homographies : ndarray, shape (T, 3, 3)
+        Card units to pixels, one per card (`app.core.geometry.homographies` of
+        `discs`).
+    max_radius_px : float
+        Discs with a larger semi-major axis (pixels) keep their given centres.
+
+    Returns
+    -------
+    DiscFit
+        The centres, which were fitted, the blur and the residuals.
+    """
     img = np.asarray(gray)
     cur = np.array(discs, np.float64).reshape(-1, 4, 2)
     t = cur.shape[0]

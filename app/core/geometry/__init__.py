@@ -1,10 +1,24 @@
 """Geometry shared by every part: the camera model, poses, pose estimation (paper
 §5.2-5.3), similarity alignment, card homographies and the tracking regions a pose
-predicts."""
+predicts.
+
+Conventions: poses map map points to the camera, ``x_cam = R @ X_map + t``, in metres;
+pixel coordinates put the centre of the top-left pixel at (0, 0), x right, y down; a
+target's discs are ordered 0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left as
+printed (docs/map-format.md).
+"""
 
 from app.core.geometry.alignment import Similarity, alignment_residuals, similarity_from_points, target_origin_alignment
-from app.core.geometry.camera import Camera, Pose
-from app.core.geometry.homography import apply_homographies, disc_axes, homographies
+from app.core.geometry.camera import Camera, IdealCanvas, Pose
+from app.core.geometry.homography import (
+    apply_homographies,
+    disc_axes,
+    ellipse_centres,
+    homogeneous,
+    homographies,
+    jacobians,
+    perspective_bias,
+)
 from app.core.geometry.pose import (
     METHODS,
     PoseEstimate,
@@ -13,16 +27,32 @@ from app.core.geometry.pose import (
     cramer_rao_position_rms,
     estimate_pose,
     nonlinear,
+    position_covariance,
+    refine_with_focal,
+    single_target_poses,
+    target_poses,
 )
-from app.core.geometry.regions import MapTargets, Region, RegionParams, predict_regions
+from app.core.geometry.regions import (
+    MapTargets,
+    PredictedTarget,
+    Region,
+    RegionParams,
+    extrapolate,
+    merge_regions,
+    plan_regions,
+    predict_regions,
+    predict_targets,
+)
 
 __all__ = [
     "METHODS",
     "Camera",
+    "IdealCanvas",
     "MapTargets",
     "Pose",
     "PoseEstimate",
     "PoseUndetermined",
+    "PredictedTarget",
     "Region",
     "RegionParams",
     "Similarity",
@@ -31,10 +61,22 @@ __all__ = [
     "apply_homographies",
     "cramer_rao_position_rms",
     "disc_axes",
+    "ellipse_centres",
     "estimate_pose",
+    "extrapolate",
+    "homogeneous",
     "homographies",
+    "jacobians",
+    "merge_regions",
     "nonlinear",
+    "perspective_bias",
+    "plan_regions",
+    "position_covariance",
     "predict_regions",
+    "predict_targets",
+    "refine_with_focal",
     "similarity_from_points",
+    "single_target_poses",
     "target_origin_alignment",
+    "target_poses",
 ]

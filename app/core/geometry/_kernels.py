@@ -1,8 +1,9 @@
 """Compiled (numba) kernels of the card homographies (`homography`): one fused loop per
 stack of homographies instead of numpy broadcasts over small arrays, with the same
-arithmetic operation for operation (the kernel tests hold the numpy references).
-Conventions as the detector's kernels: cached, ``nogil``, ``error_model="numpy"``, no
-``fastmath``."""
+arithmetic operation for operation (the homography tests hold the numpy references).
+Flags: cached, ``nogil``, ``error_model="numpy"`` (a division by zero gives inf/NaN and
+the loops vectorise), no ``fastmath`` (it would reorder the arithmetic); `warm_up`
+compiles them (or loads them from the cache) once at start-up."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 from numba import njit
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
 
 @njit(**_JIT)
 def jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -25,10 +25,27 @@ from numpy.typing import ArrayLike
 
 from app.core.geometry.camera import Pose
 
+__all__ = ["Similarity", "alignment_residuals", "similarity_from_points", "target_origin_alignment"]
+
 
 @dataclass(frozen=True, eq=False)
 class Similarity:
-    """``X_new = scale * R @ X_old + t``."""
+    """A similarity transform between two frames: ``X_new = scale * R @ X_old + t``.
+
+    Parameters
+    ----------
+    scale : float
+        Positive scale (new units per old unit).
+    R : (3, 3) array_like
+        Rotation from the old frame to the new.
+    t : (3,) array_like
+        Translation, in the new frame's units.
+
+    Raises
+    ------
+    ValueError
+        If `R` is not a rotation or `scale` is not positive and finite.
+    """
 
     scale: float
     R: np.ndarray  # (3, 3) rotation
@@ -47,35 +64,100 @@ class Similarity:
 
     @classmethod
     def identity(cls) -> Similarity:
+        """The identity: scale 1, no rotation, no translation.
+
+        Returns
+        -------
+        Similarity
+        """
         return cls(1.0, np.eye(3), np.zeros(3))
 
     def apply(self, X: ArrayLike) -> np.ndarray:
-        """Points (N, 3) (or one (3,) point) in the old frame -> the new frame."""
+        """Transform points from the old frame to the new.
+
+        Parameters
+        ----------
+        X : (N, 3) or (3,) array_like
+            Points in the old frame.
+
+        Returns
+        -------
+        ndarray
+            The points in the new frame, same shape as `X`.
+        """
         X = np.asarray(X, np.float64)
         return self.scale * X @ self.R.T + self.t
 
     def inverse(self) -> Similarity:
+        """The transform from the new frame back to the old.
+
+        Returns
+        -------
+        Similarity
+        """
         return Similarity(1.0 / self.scale, self.R.T, -self.R.T @ self.t / self.scale)
 
     def compose(self, other: Similarity) -> Similarity:
-        """``self after other``."""
+        """``self`` after ``other``: ``X -> self.apply(other.apply(X))``.
+
+        Parameters
+        ----------
+        other : Similarity
+            The transform applied first.
+
+        Returns
+        -------
+        Similarity
+        """
         return Similarity(self.scale * other.scale, self.R @ other.R, self.scale * self.R @ other.t + self.t)
 
     def apply_pose(self, pose: Pose) -> Pose:
-        """A camera pose (``x_cam = R_c X_old + t_c``) re-expressed in the new frame.
+        """A camera pose (``x_cam = R_c @ X_old + t_c``) re-expressed in the new frame.
 
         The camera frame is scaled with the map so that the new pose stays a rigid
         transform in the new frame's units: x_cam' = R_c R^T (X_new - t) + scale t_c.
+
+        Parameters
+        ----------
+        pose : Pose
+            Map-to-camera transform in the old frame.
+
+        Returns
+        -------
+        Pose
+            Map-to-camera transform in the new frame.
         """
         R = pose.R @ self.R.T
         return Pose(R, self.scale * pose.t - R @ self.t)
 
     def apply_poses(self, poses: Sequence[Pose | None]) -> list[Pose | None]:
+        """`apply_pose` on each pose of a trajectory; None (a frame without a pose) stays.
+
+        Parameters
+        ----------
+        poses : sequence of Pose or None
+
+        Returns
+        -------
+        list of Pose or None
+        """
         return [None if p is None else self.apply_pose(p) for p in poses]
 
     def apply_map_document(self, document: dict[str, Any], frame: str = "world") -> dict[str, Any]:
-        """A copy of a map document (DESIGN.md "Map format") in the new frame: disc
-        positions moved, their standard deviations scaled."""
+        """A copy of a map document (docs/map-format.md) in the new frame.
+
+        Parameters
+        ----------
+        document : dict
+            A map document; its targets' ``discs`` are in the old frame.
+        frame : str, optional
+            The new frame's name, written to the copy's ``frame``.
+
+        Returns
+        -------
+        dict
+            The copy, with disc positions moved and their ``std_m`` scaled.
+        """
         out = copy.deepcopy(document)
         for target in out.get("targets", []):
             target["discs"] = self.apply(np.asarray(target["discs"], np.float64)).tolist()
@@ -85,19 +167,54 @@ class Similarity:
         return out
 
     def to_dict(self) -> dict[str, Any]:
+        """The transform as JSON-able values.
+
+        Returns
+        -------
+        dict
+            ``scale``, ``R`` (3x3 lists) and ``t``.
+        """
         return {"scale": self.scale, "R": self.R.tolist(), "t": self.t.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Similarity:
+        """The transform of a `to_dict` document.
+
+        Parameters
+        ----------
+        d : dict
+            With ``scale``, ``R`` and ``t``.
+
+        Returns
+        -------
+        Similarity
+        """
         return cls(float(d["scale"]), np.asarray(d["R"], np.float64), np.asarray(d["t"], np.float64))
 
 
 def similarity_from_points(src: ArrayLike, dst: ArrayLike, with_scale: bool = True) -> Similarity:
-    """Least-squares similarity taking ``src`` (N, 3) onto ``dst`` (N, 3) (Umeyama 1991).
+    """Least-squares similarity taking ``src`` onto ``dst`` (Umeyama 1991).
 
-    Refuses (ValueError, with a message for the user) fewer than 3 points, non-finite
-    input, or points that are (nearly) collinear: those leave the rotation about their
-    line undetermined.
+    Parameters
+    ----------
+    src : (N, 3) array_like
+        Points in the old frame (e.g. surveyed disc centres).
+    dst : (N, 3) array_like
+        The same points measured in the new frame.
+    with_scale : bool, optional
+        Fit the scale too; False fixes it at 1 (a rigid transform).
+
+    Returns
+    -------
+    Similarity
+        The transform minimising ``sum |apply(src) - dst|^2``.
+
+    Raises
+    ------
+    ValueError
+        With a message for the user, for fewer than 3 points, non-finite input, or
+        points that are (nearly) collinear: those leave the rotation about their line
+        undetermined.
     """
     src = np.asarray(src, np.float64)
     dst = np.asarray(dst, np.float64)
@@ -128,18 +245,46 @@ def similarity_from_points(src: ArrayLike, dst: ArrayLike, with_scale: bool = Tr
 
 
 def alignment_residuals(similarity: Similarity, src: ArrayLike, dst: ArrayLike) -> np.ndarray:
-    """Distance (N,) between each transformed source point and its destination."""
+    """Distance between each transformed source point and its destination.
+
+    Parameters
+    ----------
+    similarity : Similarity
+    src, dst : (N, 3) array_like
+        Points in the old and the new frame.
+
+    Returns
+    -------
+    (N,) ndarray
+        ``|similarity.apply(src) - dst|``, in the new frame's units.
+    """
     return np.linalg.norm(similarity.apply(np.asarray(src, np.float64)) - np.asarray(dst, np.float64), axis=1)
 
 
 def target_origin_alignment(discs: ArrayLike, origin: str = "centre") -> Similarity:
     """Rigid transform (scale 1) that makes one target the world frame.
 
-    ``discs``: the target's (4, 3) surveyed disc centres in DESIGN.md order (0 TL, 1 TR,
-    2 BR, 3 BL as printed). The new frame has its origin at the card's centre (mean of
-    the discs; ``origin="disc0"`` puts it on disc 0), x along disc 0 -> disc 1, the card
-    in the plane z = 0 and z out of the printed face (towards whoever reads it), so y
-    points up the card as printed.
+    The new frame has x along disc 0 -> disc 1, the card in the plane z = 0 and z out of
+    the printed face (towards whoever reads it), so y points up the card as printed.
+
+    Parameters
+    ----------
+    discs : (4, 3) array_like
+        The target's surveyed disc centres in disc order (0 top-left, 1 top-right,
+        2 bottom-right, 3 bottom-left as printed), map coordinates.
+    origin : {"centre", "disc0"}, optional
+        The new origin: the card's centre (mean of the discs) or disc 0.
+
+    Returns
+    -------
+    Similarity
+        Map to the target's frame.
+
+    Raises
+    ------
+    ValueError
+        If `discs` is not a finite (4, 3) array, the discs coincide or are collinear,
+        or `origin` is unknown.
     """
     d = np.asarray(discs, np.float64)
     if d.shape != (4, 3) or not np.isfinite(d).all():

@@ -1,9 +1,9 @@
-"""Camera pose and intrinsics with OpenCV's conventions (DESIGN.md "Conventions").
+"""Camera pose and intrinsics with OpenCV's conventions (see docs/map-format.md).
 
-* Pose: ``x_cam = R @ X_map + t`` (OpenCV's rvec/tvec meaning); camera looks along
-  +z_cam, x_cam to the right and y_cam down in the image.
+* Pose: ``x_cam = R @ X_map + t`` (OpenCV's rvec/tvec meaning), metres; the camera
+  looks along +z_cam, x_cam to the right and y_cam down in the image.
 * Camera: ``K`` 3x3 and ``dist = [k1, k2, p1, p2, k3]`` (OpenCV's model); pixel
-  coordinates with the centre of the top-left pixel at (0, 0).
+  coordinates with the centre of the top-left pixel at (0, 0), x right, y down.
 
 Projection is done in numpy (vectorised, float64) and matches ``cv2.projectPoints`` to
 round-off; the simulator and the trackers call it for thousands of points per frame,
@@ -20,6 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
+
+__all__ = ["FOLD_FRACTION", "Camera", "IdealCanvas", "Pose"]
 
 #: The lens's usable field stops at this fraction of the radius where the distortion
 #: polynomial folds back (Camera.field_radius): at the fold the radial map's slope is
@@ -58,7 +60,20 @@ _EYE3 = np.eye(3)
 
 @dataclass(frozen=True, eq=False)  # eq=False: generated __eq__ on ndarrays is ambiguous
 class Pose:
-    """Rigid map-to-camera transform: ``x_cam = R @ X_map + t``."""
+    """Rigid map-to-camera transform: ``x_cam = R @ X_map + t``.
+
+    Parameters
+    ----------
+    R : (3, 3) array_like
+        Rotation from the map frame to the camera frame (stored float64, read-only).
+    t : (3,) array_like
+        Translation in metres: the map origin in camera coordinates.
+
+    Raises
+    ------
+    ValueError
+        If the shapes are wrong, a value is not finite, or `R` is not a rotation.
+    """
 
     R: np.ndarray  # (3, 3) rotation, float64, read-only
     t: np.ndarray  # (3,) translation, float64, read-only
@@ -88,11 +103,30 @@ class Pose:
 
     @classmethod
     def identity(cls) -> Pose:
+        """The camera at the map origin, looking along +z_map.
+
+        Returns
+        -------
+        Pose
+            ``R = I``, ``t = 0``.
+        """
         return cls(np.eye(3), np.zeros(3))
 
     @classmethod
     def from_rvec_tvec(cls, rvec: ArrayLike, tvec: ArrayLike) -> Pose:
-        """From OpenCV's Rodrigues vector and translation (solvePnP's output)."""
+        """The pose of OpenCV's Rodrigues vector and translation (solvePnP's output).
+
+        Parameters
+        ----------
+        rvec : (3,) array_like
+            Rotation vector (axis times angle, radians), map to camera.
+        tvec : (3,) array_like
+            Translation, metres.
+
+        Returns
+        -------
+        Pose
+        """
         rvec = np.asarray(rvec, dtype=np.float64).reshape(3, 1)
         R, _ = cv2.Rodrigues(rvec)
         return cls(R, np.asarray(tvec, dtype=np.float64).reshape(3))
@@ -105,7 +139,25 @@ class Pose:
 
         +z_cam points at the target, y_cam (image down) is the component of -up
         orthogonal to the viewing direction, x_cam = y_cam x z_cam (image right).
-        ValueError if `up` is parallel to the viewing direction (roll undefined).
+
+        Parameters
+        ----------
+        eye : (3,) array_like
+            Camera centre in map coordinates, metres.
+        target : (3,) array_like
+            Point the optical axis passes through, map coordinates.
+        up : (3,) array_like, optional
+            Map direction that appears up in the image (default +z_map).
+
+        Returns
+        -------
+        Pose
+
+        Raises
+        ------
+        ValueError
+            If `eye` and `target` coincide, or `up` is parallel to the viewing
+            direction (the roll is then undefined).
         """
         eye = np.asarray(eye, dtype=np.float64).reshape(3)
         target = np.asarray(target, dtype=np.float64).reshape(3)
@@ -136,18 +188,51 @@ class Pose:
         return rvec.reshape(3)
 
     def transform(self, X: ArrayLike) -> np.ndarray:
-        """Map points (N, 3) -> camera coordinates (N, 3). A (3,) point gives (1, 3)."""
+        """Map points in camera coordinates: ``R @ X + t``.
+
+        Parameters
+        ----------
+        X : (N, 3) or (3,) array_like
+            Points in map coordinates, metres.
+
+        Returns
+        -------
+        (N, 3) ndarray
+            The points in camera coordinates (a single (3,) point gives (1, 3)).
+        """
         return _points(X, 3, "X") @ self.R.T + self.t
 
     def inverse(self) -> Pose:
-        """The camera-to-map transform, as a Pose (``X_map = R.T @ x_cam - R.T @ t``)."""
+        """The camera-to-map transform, ``X_map = R.T @ x_cam - R.T @ t``.
+
+        Returns
+        -------
+        Pose
+        """
         return Pose(self.R.T, -self.R.T @ self.t)
 
     def compose(self, other: Pose) -> Pose:
-        """``self after other``: x = self.R @ (other.R @ X + other.t) + self.t."""
+        """``self`` after ``other``: ``x = self.R @ (other.R @ X + other.t) + self.t``.
+
+        Parameters
+        ----------
+        other : Pose
+            The transform applied first.
+
+        Returns
+        -------
+        Pose
+        """
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
     def to_dict(self) -> dict[str, Any]:
+        """The pose as JSON-able lists.
+
+        Returns
+        -------
+        dict
+            ``R`` (3x3), ``t`` (3,) and ``position`` (the camera centre, metres).
+        """
         return {
             "R": self.R.tolist(),
             "t": self.t.tolist(),
@@ -163,10 +248,18 @@ class Pose:
 @dataclass(frozen=True)
 class IdealCanvas:
     """Where to render an undistorted (ideal pinhole) image so that `map_x`, `map_y`
-    (cv2.remap, float32, image size) turn it into this camera's distorted image.
+    (cv2.remap) turn it into this camera's distorted image.
 
-    The canvas covers ideal-pixel columns x0 .. x0 + width - 1 and rows y0 .. y0 +
-    height - 1 (ideal pixel coordinates of the same K); the maps are relative to it.
+    Attributes
+    ----------
+    x0, y0 : int
+        Ideal-pixel column and row (same K) of the canvas's top-left pixel.
+    width, height : int
+        Canvas size in pixels: it covers ideal columns x0 .. x0 + width - 1 and rows
+        y0 .. y0 + height - 1.
+    map_x, map_y : (height, width) ndarray of float32
+        For each pixel of the camera's image (its height and width), its position on
+        the canvas.
     """
 
     x0: int
@@ -179,7 +272,25 @@ class IdealCanvas:
 
 @dataclass(frozen=True, eq=False)  # eq/hash below compare the parameter values
 class Camera:
-    """Pinhole camera with OpenCV's lens distortion ``[k1, k2, p1, p2, k3]``."""
+    """Pinhole camera with OpenCV's lens distortion ``[k1, k2, p1, p2, k3]``.
+
+    Pixel coordinates put the centre of the top-left pixel at (0, 0), x right, y down.
+
+    Parameters
+    ----------
+    K : (3, 3) array_like
+        Intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, pixels.
+    dist : (5,) or (4,) array_like or None
+        OpenCV distortion ``[k1, k2, p1, p2, k3]`` (a 4-vector gets k3 = 0; None: none).
+    width, height : int
+        Image size in pixels.
+
+    Raises
+    ------
+    ValueError
+        If `K` is not upper triangular with positive focal lengths, `dist` is not 4 or
+        5 finite values, or the size is not positive integers.
+    """
 
     K: np.ndarray  # (3, 3) float64, read-only
     dist: np.ndarray  # (5,) float64, read-only
@@ -238,15 +349,37 @@ class Camera:
         cx: float | None = None,
         cy: float | None = None,
     ) -> Camera:
-        """Square pixels, no skew; principal point defaults to the image centre, which
-        is ((w - 1) / 2, (h - 1) / 2) because the top-left pixel's centre is (0, 0)."""
+        """A camera with square pixels and no skew.
+
+        Parameters
+        ----------
+        f : float
+            Focal length in pixels.
+        width, height : int
+            Image size in pixels.
+        dist : (5,) array_like, optional
+            Distortion ``[k1, k2, p1, p2, k3]``; none by default.
+        cx, cy : float, optional
+            Principal point in pixels; by default the image centre,
+            ((width - 1) / 2, (height - 1) / 2), as the top-left pixel's centre is (0, 0).
+
+        Returns
+        -------
+        Camera
+        """
         cx = (width - 1) / 2.0 if cx is None else float(cx)
         cy = (height - 1) / 2.0 if cy is None else float(cy)
         K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
         return cls(K, np.zeros(5) if dist is None else np.asarray(dist, np.float64), width, height)
 
     def to_dict(self) -> dict[str, Any]:
-        """The map document's "camera" object (DESIGN.md "Map format")."""
+        """The map document's "camera" object (docs/map-format.md).
+
+        Returns
+        -------
+        dict
+            ``width``, ``height``, ``K`` (3x3 lists) and ``dist`` (5 values).
+        """
         return {
             "width": self.width,
             "height": self.height,
@@ -256,6 +389,22 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Camera:
+        """The camera of a map document's "camera" object (the inverse of `to_dict`).
+
+        Parameters
+        ----------
+        d : dict
+            With ``K``, ``dist``, ``width`` and ``height``.
+
+        Returns
+        -------
+        Camera
+
+        Raises
+        ------
+        ValueError
+            If a key is missing or a value is invalid.
+        """
         try:
             return cls(np.asarray(d["K"], np.float64), np.asarray(d["dist"], np.float64),
                        int(d["width"]), int(d["height"]))
@@ -263,8 +412,20 @@ class Camera:
             raise ValueError(f"camera document lacks {e.args[0]!r}") from None
 
     def scaled_to(self, width: int, height: int) -> Camera:
-        """The same lens at another resolution (a stream downscaled by the client):
-        pixel-centre coordinates scale about the top-left pixel's corner (-0.5, -0.5)."""
+        """The same lens at another resolution (a stream downscaled by the client).
+
+        Pixel-centre coordinates scale about the top-left pixel's corner (-0.5, -0.5).
+
+        Parameters
+        ----------
+        width, height : int
+            The new image size in pixels.
+
+        Returns
+        -------
+        Camera
+            K scaled; the distortion (in normalised coordinates) unchanged.
+        """
         sx, sy = width / self.width, height / self.height
         K = self.K.copy()
         K[0, 0], K[0, 1], K[1, 1] = K[0, 0] * sx, K[0, 1] * sx, K[1, 1] * sy
@@ -276,18 +437,22 @@ class Camera:
 
     @property
     def fx(self) -> float:
+        """Horizontal focal length, pixels."""
         return float(self.K[0, 0])
 
     @property
     def fy(self) -> float:
+        """Vertical focal length, pixels."""
         return float(self.K[1, 1])
 
     @property
     def cx(self) -> float:
+        """Principal point column, pixels."""
         return float(self.K[0, 2])
 
     @property
     def cy(self) -> float:
+        """Principal point row, pixels."""
         return float(self.K[1, 2])
 
     @property
@@ -297,6 +462,7 @@ class Camera:
 
     @property
     def has_distortion(self) -> bool:
+        """Whether any distortion coefficient is non-zero."""
         return bool(np.any(self.dist != 0))
 
     # ---- projection -------------------------------------------------------------------
@@ -324,10 +490,20 @@ class Camera:
         return x, y
 
     def project(self, X_cam: ArrayLike) -> np.ndarray:
-        """Camera-frame points (N, 3) -> distorted pixels (N, 2), as cv2.projectPoints.
+        """Project camera-frame points to (distorted) pixels, as cv2.projectPoints.
 
         No visibility test: points behind the camera still get a (meaningless) pixel
-        and Z == 0 gives inf/nan; use `visible_points` (render module) to filter.
+        and Z == 0 gives inf/nan; `in_field` tells which rays can reach the image.
+
+        Parameters
+        ----------
+        X_cam : (N, 3) or (3,) array_like
+            Points in camera coordinates, metres.
+
+        Returns
+        -------
+        (N, 2) ndarray
+            Pixel coordinates (x, y).
         """
         X = _points(X_cam, 3, "X_cam")
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -338,29 +514,76 @@ class Camera:
             return self._to_pixels(x, y)
 
     def project_map(self, X_map: ArrayLike, pose: Pose) -> np.ndarray:
-        """Map points (N, 3) seen from `pose` -> distorted pixels (N, 2)."""
+        """Project map points seen from `pose` to (distorted) pixels.
+
+        Parameters
+        ----------
+        X_map : (N, 3) or (3,) array_like
+            Points in map coordinates, metres.
+        pose : Pose
+            Map-to-camera transform.
+
+        Returns
+        -------
+        (N, 2) ndarray
+            Pixel coordinates (x, y).
+        """
         return self.project(pose.transform(X_map))
 
     def project_ideal(self, X_cam: ArrayLike) -> np.ndarray:
-        """Camera-frame points (N, 3) -> ideal pinhole pixels (N, 2) (no distortion)."""
+        """Project camera-frame points through the pinhole alone (no distortion).
+
+        Parameters
+        ----------
+        X_cam : (N, 3) or (3,) array_like
+            Points in camera coordinates, metres.
+
+        Returns
+        -------
+        (N, 2) ndarray
+            Ideal pixel coordinates (x, y) of the same K.
+        """
         X = _points(X_cam, 3, "X_cam")
         with np.errstate(divide="ignore", invalid="ignore"):
             return self._to_pixels(X[:, 0] / X[:, 2], X[:, 1] / X[:, 2])
 
     def distort_pixels(self, uv_ideal: ArrayLike) -> np.ndarray:
-        """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2) (same K)."""
+        """Distort ideal pinhole pixels (the inverse of `undistort_pixels`).
+
+        Parameters
+        ----------
+        uv_ideal : (N, 2) or (2,) array_like
+            Ideal pixel coordinates of this camera's K.
+
+        Returns
+        -------
+        (N, 2) ndarray
+            The distorted pixel coordinates (same K).
+        """
         x, y = self._to_normalised(_points(uv_ideal, 2, "uv_ideal"))
         if self.has_distortion:
             x, y = self._distort(x, y)
         return self._to_pixels(x, y)
 
     def undistort_pixels(self, uv: ArrayLike, iterations: int = 20) -> np.ndarray:
-        """Distorted pixels (N, 2) -> ideal pinhole pixels (N, 2) of the same K.
+        """Remove the lens distortion from pixel coordinates.
 
         Like cv2.undistortPoints(..., P=K), but solved to round-off with Newton's
         method (cv2's default is 5 fixed-point steps, ~0.01 px off at the corners of a
         strongly distorted lens). Where the distortion polynomial folds over (far
         outside the lens's valid field) the answer is a best effort.
+
+        Parameters
+        ----------
+        uv : (N, 2) or (2,) array_like
+            Distorted pixel coordinates.
+        iterations : int, optional
+            Most Newton steps (it stops at ~1e-9 px, after 3-5 steps).
+
+        Returns
+        -------
+        (N, 2) ndarray
+            Ideal pinhole pixel coordinates of the same K.
         """
         uv = _points(uv, 2, "uv")
         if not self.has_distortion:
@@ -396,8 +619,8 @@ class Camera:
 
     @property
     def fold_radius(self) -> float:
-        """Normalised radius (X/Z) where the radial map r -> r (1 + k1 r^2 + k2 r^4 +
-        k3 r^6) first stops increasing; inf when it never does.
+        """Normalised radius (X/Z, no unit) where the radial map r -> r (1 + k1 r^2 +
+        k2 r^4 + k3 r^6) first stops increasing; inf when it never does.
 
         Beyond it the distortion polynomial folds back: a point far off the image (even
         70 degrees off axis) can `project` into it. Exact: the smallest positive root of
@@ -407,21 +630,46 @@ class Camera:
         return _field_extent(self)[1]
 
     def field_radius(self, margin: float = 1.0) -> float:
-        """Normalised radius (X/Z) of the field this camera sees: `margin` times that of
-        the image's farthest corner, never past FOLD_FRACTION of `fold_radius`.
+        """Normalised radius (X/Z) of the field this camera sees.
 
         The one place that answers "could this ray be in the image": within it
         `project` is trustworthy, beyond it a point is off the image however its
-        (possibly folded) projection looks. margin 1.0: exactly the image's rays (an
-        in-image point never lies beyond, for a radial lens); > 1: a safety band.
+        (possibly folded) projection looks.
+
+        Parameters
+        ----------
+        margin : float, optional
+            Multiple of the image's farthest corner's radius: 1.0 is exactly the image's
+            rays (an in-image point never lies beyond, for a radial lens); > 1 adds a
+            safety band.
+
+        Returns
+        -------
+        float
+            ``margin`` times the corner radius, never past FOLD_FRACTION of
+            `fold_radius`.
         """
         corner, fold = _field_extent(self)
         return min(margin * corner, FOLD_FRACTION * fold)
 
     def in_field(self, points_cam: ArrayLike, margin: float = 1.0) -> np.ndarray:
-        """(N,) bool: camera-frame points (N, 3) in front of the camera (z > 0) and
-        within `field_radius(margin)`, i.e. rays that can reach the image; the test
-        to apply before trusting `project` (it folds far-off points into the image)."""
+        """Which camera-frame points lie on rays that can reach the image.
+
+        The test to apply before trusting `project`, which folds far-off points into
+        the image.
+
+        Parameters
+        ----------
+        points_cam : (N, 3) or (3,) array_like
+            Points in camera coordinates, metres.
+        margin : float, optional
+            As in `field_radius`.
+
+        Returns
+        -------
+        (N,) ndarray of bool
+            In front of the camera (z > 0) and within ``field_radius(margin)``.
+        """
         X = _points(points_cam, 3, "points_cam")
         limit = self.field_radius(margin)
         z = X[:, 2]
@@ -442,12 +690,17 @@ class Camera:
         return map_x, map_y
 
     def distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """(map_x, map_y), float32 (height, width), read-only, cached per camera.
+        """Maps from this camera's (distorted) image into the ideal pinhole image.
 
-        For every pixel of this camera's (distorted) image, its location in the ideal
-        pinhole image of the same K: ``cv2.remap(ideal, map_x, map_y, INTER_LINEAR)``
-        turns an undistorted image into the distorted one. (cv2.initUndistortRectifyMap
-        is the opposite direction.) Without distortion the maps are the identity.
+        ``cv2.remap(ideal, map_x, map_y, INTER_LINEAR)`` turns an undistorted image into
+        the distorted one (cv2.initUndistortRectifyMap is the opposite direction).
+        Without distortion the maps are the identity.
+
+        Returns
+        -------
+        map_x, map_y : (height, width) ndarray of float32
+            For every pixel, its location in the ideal image of the same K; read-only,
+            cached per camera.
         """
         return self._distortion_maps
 

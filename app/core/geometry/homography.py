@@ -31,9 +31,20 @@ assert np.allclose(DISC_CENTRES, [[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]
 
 
 def homographies(quads: np.ndarray) -> np.ndarray:
-    """(P, 3, 3) homographies mapping the layout disc centres (card units) to `quads`
-    (P, 4, 2), all at once (Heckbert's closed-form square-to-quad mapping; a Python loop
-    over cv2.getPerspectiveTransform costs more than the rest of the grouping)."""
+    """Card homographies from the image points of the four disc centres, all at once
+    (Heckbert's closed-form square-to-quad mapping; a Python loop over
+    cv2.getPerspectiveTransform costs more than the rest of the grouping).
+
+    Parameters
+    ----------
+    quads : ndarray, shape (P, 4, 2)
+        Image points of the layout's disc centres 0-3 of each card.
+
+    Returns
+    -------
+    ndarray, shape (P, 3, 3)
+        Homographies mapping card units (the layout, 0..1) to the image.
+    """
     q = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if q.shape[0] <= _FEW:
         return _homographies_few(q)
@@ -61,7 +72,8 @@ _FEW = 8
 
 def _homographies_few(q: np.ndarray) -> np.ndarray:
     """`homographies` of a few quadrilaterals (P, 4, 2) in Python floats: the same
-    arithmetic, operation for operation, as the vectorised code (identical results)."""
+    arithmetic, operation for operation, as the vectorised code (identical results).
+    """
     rows = []
     for (x0, y0), (x1, y1), (x2, y2), (x3, y3) in q.tolist():
         dx1, dy1, dx2, dy2 = x1 - x2, y1 - y2, x3 - x2, y3 - y2
@@ -76,7 +88,18 @@ def _homographies_few(q: np.ndarray) -> np.ndarray:
 
 
 def homogeneous(pts: np.ndarray) -> np.ndarray:
-    """Card points (M, 2) -> (M, 3) with w = 1."""
+    """Points with w = 1 appended.
+
+    Parameters
+    ----------
+    pts : ndarray, shape (M, 2)
+        Card points.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The points, homogeneous.
+    """
     return np.concatenate([pts, np.ones((pts.shape[0], 1))], axis=1)
 
 
@@ -84,8 +107,20 @@ _DISC_CENTRES_H = homogeneous(DISC_CENTRES)
 
 
 def apply_homographies(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Map card points `pts` (M, 2), or (M, 3) homogeneous, through every homography
-    (P, 3, 3) -> (P, M, 2)."""
+    """Card points mapped through every homography.
+
+    Parameters
+    ----------
+    hs : ndarray, shape (P, 3, 3)
+        Homographies.
+    pts : ndarray, shape (M, 2) or (M, 3)
+        Card points, or the same homogeneous.
+
+    Returns
+    -------
+    ndarray, shape (P, M, 2)
+        Image points (a |w| not above 1e-12 taken as 1e-12).
+    """
     x = np.matmul(pts if pts.shape[1] == 3 else homogeneous(pts), hs.transpose(0, 2, 1))
     w = x[..., 2:3]
     w = np.where(np.abs(w) > 1e-12, w, 1e-12)
@@ -93,32 +128,82 @@ def apply_homographies(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def ellipse_centres(hs: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
-    """Centres (P, K, 2) of the image ellipses of card circles (`centres` (K, 2),
-    `radius`) under each homography. The centre of a conic is the pole of the line at
-    infinity; pulled back to the card, that line is the homography's third row
-    (g, h, 1), and the pole of it with respect to the circle is the card point
-    ``c - radius**2 (g, h) / (g cx + h cy + 1)``: its image is the ellipse centre."""
+    """Centres of the image ellipses of card circles under each homography.
+
+    The centre of a conic is the pole of the line at infinity; pulled back to the card,
+    that line is the homography's third row (g, h, 1), and the pole of it with respect to
+    the circle is the card point ``c - radius**2 (g, h) / (g cx + h cy + 1)``: its image is
+    the ellipse centre.
+
+    Parameters
+    ----------
+    hs : ndarray, shape (P, 3, 3)
+        Homographies.
+    centres : ndarray, shape (K, 2)
+        Circle centres on the card.
+    radius : float
+        Circle radius on the card.
+
+    Returns
+    -------
+    ndarray, shape (P, K, 2)
+        Ellipse centres in the image.
+    """
     # one compiled loop (`_kernels.ellipse_centres`: the numpy arithmetic of the
-    # reference in the kernel tests, operation for operation)
+    # reference in the homography tests, operation for operation)
     return _kernels.ellipse_centres(np.ascontiguousarray(hs, np.float64), np.ascontiguousarray(centres, np.float64),
                                    float(radius))
 
 
 def disc_axes(discs: np.ndarray) -> np.ndarray:
-    """Semi-axes (T, 4, 2) in pixels, major then minor, of the image ellipses of the
-    discs of cards `discs` (T, 4, 2) (printed order), to first order: the singular
-    values of the card homography's Jacobian at each disc times the disc radius."""
+    """Semi-axes of the image ellipses of the discs of cards, to first order: the singular
+    values of the card homography's Jacobian at each disc times the disc radius.
+
+    Parameters
+    ----------
+    discs : ndarray, shape (T, 4, 2)
+        Disc centres of each card in the image (printed order).
+
+    Returns
+    -------
+    ndarray, shape (T, 4, 2)
+        Semi-axes in pixels, major then minor.
+    """
     jac = jacobians(homographies(np.asarray(discs, np.float64).reshape(-1, 4, 2)), DISC_CENTRES)
     return np.linalg.svd(jac, compute_uv=False) * DISC_RADIUS
 
 
 def perspective_bias(hs: np.ndarray) -> np.ndarray:
-    """(P, 4, 2) image-ellipse centre minus the image of the centre, of each disc."""
+    """How far each disc's image-ellipse centre lies from the image of the disc's centre.
+
+    Parameters
+    ----------
+    hs : ndarray, shape (P, 3, 3)
+        Card homographies.
+
+    Returns
+    -------
+    ndarray, shape (P, 4, 2)
+        Ellipse centre minus projected centre, per disc, in pixels.
+    """
     return ellipse_centres(hs, DISC_CENTRES, DISC_RADIUS) - apply_homographies(hs, _DISC_CENTRES_H)
 
 
 def jacobians(hs: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """(P, K, 2, 2) Jacobians d(image)/d(card) of each homography at card points (K, 2)."""
+    """Jacobians d(image)/d(card) of each homography at card points.
+
+    Parameters
+    ----------
+    hs : ndarray, shape (P, 3, 3)
+        Homographies.
+    pts : ndarray, shape (K, 2)
+        Card points.
+
+    Returns
+    -------
+    ndarray, shape (P, K, 2, 2)
+        Image offset per card offset at each point.
+    """
     # row r: (H[r, :2] - image[r] * H[2, :2]) / w, image[r] = x[r] / w, x = H (p, 1); one
     # compiled loop (`_kernels.jacobians`, the numpy arithmetic operation for operation)
     return _kernels.jacobians(np.ascontiguousarray(hs, np.float64), np.ascontiguousarray(pts, np.float64))

@@ -24,16 +24,46 @@ import numpy as np
 
 from app.core.geometry.camera import Camera, Pose
 
+__all__ = [
+    "METHODS",
+    "PoseEstimate",
+    "PoseUndetermined",
+    "TargetObservation",
+    "cramer_rao_position_rms",
+    "estimate_pose",
+    "mean",
+    "nonlinear",
+    "posit",
+    "position_covariance",
+    "refine_with_focal",
+    "residuals",
+    "single",
+    "single_target_poses",
+    "target_poses",
+]
+
+#: The pose methods `estimate_pose` knows, the paper's first.
 METHODS = ("nonlinear", "posit", "mean", "single")
 
 
 class PoseUndetermined(ValueError):
-    """The observations do not determine a pose (say why)."""
+    """The observations do not determine a pose; the message says why."""
 
 
 @dataclass(frozen=True)
 class TargetObservation:
-    """One identified target: its 4 disc centres in the image and in the map."""
+    """One identified target: its disc centres in the image and in the map.
+
+    Attributes
+    ----------
+    id : int
+        The target's id.
+    image : (4, 2) ndarray
+        Disc centres in pixels, in disc order (0 top-left, 1 top-right, 2 bottom-right,
+        3 bottom-left as printed).
+    map : (4, 3) ndarray
+        The same discs' centres in map coordinates, metres.
+    """
 
     id: int
     image: np.ndarray  # (4, 2) pixels
@@ -42,6 +72,31 @@ class TargetObservation:
 
 @dataclass(frozen=True, eq=False)
 class PoseEstimate:
+    """A camera pose with its fit and uncertainty.
+
+    Attributes
+    ----------
+    pose : Pose
+        Map-to-camera transform, ``x_cam = R @ X_map + t``.
+    rms_px : float
+        RMS reprojection error over the points the pose rests on, pixels.
+    n_targets, n_points : int
+        Targets and disc centres the pose rests on.
+    covariance : ndarray
+        Covariance of (rvec, tvec[, f]) at the optimum (radians, metres, pixels), the
+        noise level estimated from the residuals.
+    covariance_position : (3, 3) ndarray
+        Covariance of the camera centre, square metres.
+    focal_px : float
+        The focal length used (estimated when the focal length was free), pixels.
+    target_ids : list of int
+        The targets the pose rests on (inliers).
+    rejected_ids : list of int
+        Targets refused as outliers.
+    method : str
+        One of `METHODS`.
+    """
+
     pose: Pose
     rms_px: float
     n_targets: int
@@ -54,6 +109,15 @@ class PoseEstimate:
     method: str
 
     def to_dict(self) -> dict[str, object]:
+        """The estimate as JSON-able values (the service's pose document).
+
+        Returns
+        -------
+        dict
+            ``R``, ``t``, ``position`` (metres), ``reprojection_rms_px``, ``n_targets``,
+            ``n_points``, ``covariance_position`` (m^2), ``focal_px``, ``method`` and
+            ``rejected_targets``.
+        """
         return {
             "R": self.pose.R.tolist(),
             "t": self.pose.t.tolist(),
@@ -112,7 +176,23 @@ def _ideal(camera: Camera, image: np.ndarray) -> np.ndarray:
 
 
 def residuals(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """Reprojection residuals (N, 2) in pixels."""
+    """Reprojection residuals of measured image points.
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform.
+    world : (N, 3) ndarray
+        Points in map coordinates, metres.
+    image : (N, 2) ndarray
+        Their measured pixel positions.
+
+    Returns
+    -------
+    (N, 2) ndarray
+        Projected minus measured, pixels.
+    """
     return camera.project(pose.transform(world)) - image
 
 
@@ -197,8 +277,31 @@ def _refine_focal(K: np.ndarray, dist: np.ndarray, rvec: np.ndarray, tvec: np.nd
 
 def refine_with_focal(camera: Camera, pose: Pose, world: np.ndarray, image: np.ndarray,
                       iterations: int = 30) -> tuple[Pose, float]:
-    """Levenberg-Marquardt on the reprojection error over (rvec, t, f), the aspect
-    ratio, principal point and distortion fixed (the paper's zoom lens, §5.3)."""
+    """Refine a pose and the focal length together (the paper's zoom lens, §5.3).
+
+    Levenberg-Marquardt on the reprojection error over (rvec, t, f); the aspect
+    ratio, principal point and distortion stay fixed.
+
+    Parameters
+    ----------
+    camera : Camera
+        The lens; its focal length is the start.
+    pose : Pose
+        Start pose, map to camera.
+    world : (N, 3) ndarray
+        Points in map coordinates, metres.
+    image : (N, 2) ndarray
+        Their measured pixel positions.
+    iterations : int, optional
+        Most Levenberg-Marquardt iterations.
+
+    Returns
+    -------
+    pose : Pose
+        The refined pose.
+    focal_px : float
+        The refined focal length fx, pixels.
+    """
     rvec, tvec, K, _ = _refine_focal(camera.K, camera.dist, pose.rvec, pose.t, world, image, iterations)
     return Pose.from_rvec_tvec(rvec.ravel(), tvec.ravel()), float(K[0, 0])
 
@@ -212,7 +315,20 @@ def _position_jacobian(R: np.ndarray, dR: np.ndarray, t: np.ndarray) -> np.ndarr
 
 
 def position_covariance(pose: Pose, covariance: np.ndarray) -> np.ndarray:
-    """Covariance of the camera centre c = -R^T t from that of (rvec, t), to first order."""
+    """Covariance of the camera centre c = -R^T t from that of (rvec, t), to first order.
+
+    Parameters
+    ----------
+    pose : Pose
+        The pose the covariance belongs to.
+    covariance : (6, 6) or larger ndarray
+        Covariance over (rvec, tvec[, ...]) (radians, metres); the leading 6x6 is used.
+
+    Returns
+    -------
+    (3, 3) ndarray
+        Covariance of the camera centre in map coordinates, square metres.
+    """
     R, dR = cv2.Rodrigues(pose.rvec)  # dR: (3, 9), d vec(R) / d rvec, row-major R
     jac = _position_jacobian(R, dR, pose.t)
     return jac @ covariance[:6, :6] @ jac.T
@@ -379,6 +495,26 @@ def nonlinear(
     A target whose discs do not fit the others (misidentified, a wrong disc) is found by
     consensus over targets and dropped. The fast path (all fit) costs one SQPnP and one
     Gauss-Newton step, whose Jacobian also gives the covariance (~0.1 ms at 12 points).
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+        The identified targets with known map positions.
+    camera : Camera
+        Intrinsics and distortion of the image.
+    estimate_focal : bool, optional
+        Free the focal length too (zoom lenses; needs at least 2 targets).
+    outlier_px : float, optional
+        A target whose worst disc is off by more than this (pixels) is an outlier.
+
+    Returns
+    -------
+    PoseEstimate
+
+    Raises
+    ------
+    PoseUndetermined
+        If the points do not determine a pose (fewer than 4, collinear, singular).
     """
     image, world, counts = _stack(observations)
     spread = _check_determined(world)
@@ -440,7 +576,23 @@ def _consensus(camera: Camera, image: np.ndarray, world: np.ndarray, owner: np.n
 
 
 def single(observations: Sequence[TargetObservation], camera: Camera) -> PoseEstimate:
-    """The best single target (largest in the image), nonlinear on its 4 discs."""
+    """Pose from the single target that is largest in the image, nonlinear on its discs.
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+        Identified targets; only the largest is used.
+    camera : Camera
+
+    Returns
+    -------
+    PoseEstimate
+
+    Raises
+    ------
+    PoseUndetermined
+        If that target's discs do not determine a pose.
+    """
     def area(o: TargetObservation) -> float:
         return float(cv2.contourArea(np.asarray(o.image, np.float32)))
 
@@ -472,8 +624,25 @@ def _optima(K: np.ndarray, dist: np.ndarray, world: np.ndarray, image: np.ndarra
 
 
 def target_poses(observation: TargetObservation, camera: Camera) -> list[Pose]:
-    """The distinct local optima of one target's own reprojection error (nonlinear on
-    its 4 discs), best fit first. For a small or far card these are its two tilts."""
+    """The distinct local optima of one target's own reprojection error.
+
+    For a small or far card these are its two tilts.
+
+    Parameters
+    ----------
+    observation : TargetObservation
+    camera : Camera
+
+    Returns
+    -------
+    list of Pose
+        Nonlinear fits on its discs, best fit first.
+
+    Raises
+    ------
+    PoseUndetermined
+        If its discs do not determine a pose.
+    """
     image, world, _ = _stack([observation])
     _check_determined(world)
     return [Pose.from_rvec_tvec(f.rvec.ravel(), f.tvec.ravel()) for f in _optima(camera.K, camera.dist, world, image)]
@@ -489,6 +658,21 @@ def single_target_poses(observations: Sequence[TargetObservation], camera: Camer
     targets in view: of each target's tilts the one that best explains the *other*
     targets' discs (median reprojection error) is taken. With one target, its own
     residual decides.
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+    camera : Camera
+
+    Returns
+    -------
+    list of Pose
+        One pose per observation, in the order given.
+
+    Raises
+    ------
+    PoseUndetermined
+        If a target's discs do not determine a pose.
     """
     image, world, counts = _stack(observations)
     owner = _owner(counts)
@@ -520,7 +704,23 @@ def mean(observations: Sequence[TargetObservation], camera: Camera) -> PoseEstim
     """Mean of the single-target poses ("mean of three positions", Table 1): each
     target's own pose with its tilt resolved by the others (``single_target_poses``),
     then the mean camera centre and the mean rotation (quaternion average). Better
-    than one target, worse than all at once."""
+    than one target, worse than all at once.
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+    camera : Camera
+
+    Returns
+    -------
+    PoseEstimate
+        Its residual and covariance are those of the mean pose on all the discs.
+
+    Raises
+    ------
+    PoseUndetermined
+        If a target's discs do not determine a pose.
+    """
     poses = single_target_poses(observations, camera)
     position = np.mean([p.position for p in poses], axis=0)
     quaternions = np.array([_quaternion(p.R) for p in poses])
@@ -534,8 +734,27 @@ def mean(observations: Sequence[TargetObservation], camera: Camera) -> PoseEstim
 
 
 def posit(observations: Sequence[TargetObservation], camera: Camera, iterations: int = 100) -> PoseEstimate:
-    """DeMenthon & Davis's POSIT (scaled orthographic iterations); the coplanar variant
-    (Oberkampf, DeMenthon & Davis) when all points lie in a plane, e.g. one target."""
+    """DeMenthon & Davis's POSIT (scaled orthographic iterations).
+
+    The coplanar variant (Oberkampf, DeMenthon & Davis) is used when all points lie in
+    a plane, e.g. one target. Distortion is removed from the measurements first.
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+    camera : Camera
+    iterations : int, optional
+        Most POSIT iterations.
+
+    Returns
+    -------
+    PoseEstimate
+
+    Raises
+    ------
+    PoseUndetermined
+        If the points do not determine a pose or none lies in front of the camera.
+    """
     image, world, _ = _stack(observations)
     spread = _check_determined(world)
     normalised = _ideal(camera, image)
@@ -639,7 +858,31 @@ def estimate_pose(
     method: str = "nonlinear",
     estimate_focal: bool = False,
 ) -> PoseEstimate:
-    """Pose by the named method; raises ``PoseUndetermined`` when there is none."""
+    """The camera pose from the identified targets in one image (paper §5.2-5.3).
+
+    Parameters
+    ----------
+    observations : sequence of TargetObservation
+        Identified targets whose discs' map positions are known.
+    camera : Camera
+        Intrinsics and distortion of the image.
+    method : {"nonlinear", "posit", "mean", "single"}, optional
+        "nonlinear" is the paper's method; the others are for comparison (Table 1).
+    estimate_focal : bool, optional
+        Free the focal length too ("nonlinear" only, at least 2 targets).
+
+    Returns
+    -------
+    PoseEstimate
+        Its pose is map to camera, ``x_cam = R @ X_map + t``, in metres.
+
+    Raises
+    ------
+    PoseUndetermined
+        If there are no observations or they do not determine a pose.
+    ValueError
+        If `method` is unknown.
+    """
     if not observations:
         raise PoseUndetermined("no identified target with a known map position")
     if method == "nonlinear":
@@ -656,8 +899,23 @@ def estimate_pose(
 
 
 def cramer_rao_position_rms(camera: Camera, pose: Pose, world: np.ndarray, sigma_px: float) -> float:
-    """Lower bound on the RMS camera-position error of any unbiased estimator, for
-    isotropic Gaussian noise of ``sigma_px`` on every image point."""
+    """Lower bound on the RMS camera-position error of any unbiased estimator.
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        The true pose, map to camera.
+    world : (N, 3) ndarray
+        The observed points in map coordinates, metres.
+    sigma_px : float
+        Standard deviation of isotropic Gaussian noise on every image point, pixels.
+
+    Returns
+    -------
+    float
+        The Cramer-Rao bound on the RMS camera-centre error, metres.
+    """
     _, J = _linearise(camera.K, camera.dist, pose.rvec, pose.t, world, np.zeros((len(world), 2)), False)
     covariance = np.linalg.inv(J.T @ J) * sigma_px**2
     return float(np.sqrt(np.trace(position_covariance(pose, covariance))))

@@ -8,8 +8,8 @@ only in boxes around those predictions is much cheaper than scanning the whole f
 Boxes are snapped outward to multiples of `RegionParams.align` pixels (8): the
 detector's 4-level pyramid halves the image three times, and a crop whose corner is a
 multiple of 8 full-resolution pixels is a whole number of pixels at every level, so its
-pyramid samples are the full frame's (away from the crop's own border, see
-tests/test_regions.py), and a target well inside a crop is found with the same disc
+pyramid samples are the full frame's (away from the crop's own border, as
+tests/core/geometry/test_regions.py checks), and a target well inside a crop is found with the same disc
 centres as in the full frame.
 
 numpy, cv2.Rodrigues and the Camera's own projection: no web or storage imports.
@@ -25,6 +25,18 @@ import cv2
 import numpy as np
 
 from app.core.geometry.camera import Camera, Pose
+
+__all__ = [
+    "MapTargets",
+    "PredictedTarget",
+    "Region",
+    "RegionParams",
+    "extrapolate",
+    "merge_regions",
+    "plan_regions",
+    "predict_regions",
+    "predict_targets",
+]
 
 #: Card corners from the disc centres: discs sit at 0.2 / 0.8 of the card side, so the
 #: card's corners are 0.5 / 0.3 = 5/3 as far from the card centre as its discs.
@@ -42,6 +54,37 @@ class RegionParams:
     far the velocity moves the target) covers a changing velocity: the faster the
     camera moves, the worse a constant-velocity guess. Without a velocity (one pose
     only) the ``still_*`` margins hold, which must cover a whole frame's motion.
+
+    Attributes
+    ----------
+    motion_px : float
+        Margin per frame ahead with a velocity, pixels.
+    motion_card : float
+        Margin per frame ahead with a velocity, times the card's apparent size.
+    motion_speed : float
+        Margin times how far the velocity moves the target (pixels per pixel).
+    still_px, still_card : float
+        As `motion_px` and `motion_card`, without a velocity.
+    border_px : float
+        Extra pixels beyond the card outline.
+    align : int
+        Box edges snap outward to multiples of this many pixels (a multiple of 8).
+    min_side : int
+        Smallest crop side, pixels.
+    max_fraction : float
+        Crops covering more of the frame than this: scan the whole frame.
+    crop_cost_px : int
+        Two boxes merge when together they cost at most this many more pixels.
+    near_m : float
+        Cards with a disc or corner nearer than this (metres, along the optical axis)
+        are not predicted.
+    max_steps : int
+        Predictions further ahead than this many frames are not trusted.
+
+    Raises
+    ------
+    ValueError
+        If `align` is not a positive multiple of 8.
     """
 
     motion_px: float = 8.0
@@ -76,7 +119,24 @@ class RegionParams:
 
 @dataclass(frozen=True, eq=False)
 class MapTargets:
-    """A map's targets stacked for fast projection (built once per map)."""
+    """A map's targets stacked for fast projection (built once per map).
+
+    Attributes
+    ----------
+    ids : (T,) ndarray of int
+        Target ids, ascending.
+    discs : (T, 4, 3) ndarray
+        Disc centres in map coordinates, metres, in disc order (0 top-left, 1 top-right,
+        2 bottom-right, 3 bottom-left as printed).
+    corners : (T, 4, 3) ndarray
+        Card corners extrapolated from the discs.
+    normals : (T, 3) ndarray
+        Unit normals out of the printed faces.
+    centres : (T, 3) ndarray
+        Card centres (mean of the discs).
+    points : (T * 8, 3) ndarray
+        Each target's discs, then its corners.
+    """
 
     ids: np.ndarray  # (T,) int
     discs: np.ndarray  # (T, 4, 3) metres
@@ -87,6 +147,17 @@ class MapTargets:
 
     @classmethod
     def from_discs(cls, discs: Mapping[int, np.ndarray]) -> MapTargets:
+        """Stack a map's targets.
+
+        Parameters
+        ----------
+        discs : mapping of int to (4, 3) array_like
+            Target id to its disc centres in map coordinates (metres), in disc order.
+
+        Returns
+        -------
+        MapTargets
+        """
         ids = np.array(sorted(discs), dtype=np.int64)
         d = np.array([np.asarray(discs[int(i)], np.float64).reshape(4, 3) for i in ids]).reshape(-1, 4, 3)
         centre = d.mean(axis=1, keepdims=True)
@@ -104,7 +175,18 @@ class MapTargets:
 
 @dataclass(frozen=True, eq=False)
 class PredictedTarget:
-    """Where a map target is expected: its discs (4, 2) and its padded box (pixels)."""
+    """Where a map target is expected in the next frame.
+
+    Attributes
+    ----------
+    id : int
+        The target's id.
+    discs_px : (4, 2) ndarray
+        Predicted disc centres, pixels.
+    box : tuple of float
+        (x0, y0, x1, y1), the padded box around the card in pixels, not yet snapped or
+        clipped to the image.
+    """
 
     id: int
     discs_px: np.ndarray
@@ -113,8 +195,17 @@ class PredictedTarget:
 
 @dataclass(frozen=True)
 class Region:
-    """A crop of the frame: columns x0..x1-1, rows y0..y1-1 (full-frame pixels), and the
-    map targets predicted in it."""
+    """A crop of the frame and the map targets predicted in it.
+
+    Attributes
+    ----------
+    x0, y0 : int
+        First column and row of the crop, full-frame pixels.
+    x1, y1 : int
+        One past the last column and row.
+    ids : tuple of int
+        The map targets predicted in the crop.
+    """
 
     x0: int
     y0: int
@@ -124,18 +215,32 @@ class Region:
 
     @property
     def width(self) -> int:
+        """Columns in the crop."""
         return self.x1 - self.x0
 
     @property
     def height(self) -> int:
+        """Rows in the crop."""
         return self.y1 - self.y0
 
     @property
     def area(self) -> int:
+        """Pixels in the crop."""
         return self.width * self.height
 
     def contains(self, uv: np.ndarray) -> bool:
-        """All points (N, 2) inside the crop (pixel centres, so the edges are at -0.5)."""
+        """Whether all points lie inside the crop.
+
+        Parameters
+        ----------
+        uv : (N, 2) array_like
+            Full-frame pixel coordinates (pixel centres at integers, so the crop's edges
+            are at x0 - 0.5 and x1 - 0.5).
+
+        Returns
+        -------
+        bool
+        """
         p = np.asarray(uv, np.float64).reshape(-1, 2)
         return bool(((p[:, 0] >= self.x0 - 0.5) & (p[:, 0] <= self.x1 - 0.5)
                      & (p[:, 1] >= self.y0 - 0.5) & (p[:, 1] <= self.y1 - 0.5)).all())
@@ -147,8 +252,21 @@ class Region:
 
 
 def extrapolate(before: Pose, last: Pose, steps: float) -> Pose:
-    """Constant-velocity guess: the camera motion from `before` to `last`, applied
-    again `steps` times (fractions allowed: the rotation is scaled on its axis)."""
+    """Constant-velocity guess of a later pose.
+
+    Parameters
+    ----------
+    before, last : Pose
+        Two poses (map to camera), `before` the earlier.
+    steps : float
+        How many times the motion from `before` to `last` is applied again after `last`
+        (fractions allowed: the rotation is scaled on its axis).
+
+    Returns
+    -------
+    Pose
+        The extrapolated pose.
+    """
     # delta = last o before^-1 (camera(before) -> camera(last)), in plain arrays.
     dR = last.R @ before.R.T
     dt = last.t - dR @ before.t
@@ -190,9 +308,23 @@ def predict_targets(targets: MapTargets, camera: Camera, pose: Pose, previous: P
                     steps: float = 1.0, params: RegionParams | None = None) -> list[PredictedTarget]:
     """Every map target in front of the camera, facing it, whose padded box meets the image.
 
-    `pose`: the predicted pose of the frame to scan; `previous`: the pose it was
-    extrapolated from (None: no velocity, `pose` is simply the last one, and the
-    ``still`` margins apply); `steps`: frames since the last pose.
+    Parameters
+    ----------
+    targets : MapTargets
+    camera : Camera
+    pose : Pose
+        The predicted pose (map to camera) of the frame to scan.
+    previous : Pose or None, optional
+        The pose `pose` was extrapolated from; None: no velocity, `pose` is simply the
+        last one, and the ``still_*`` margins apply.
+    steps : float, optional
+        Frames since the last pose.
+    params : RegionParams, optional
+
+    Returns
+    -------
+    list of PredictedTarget
+        In ascending id order.
     """
     p = params or RegionParams()
     n = len(targets)
@@ -259,9 +391,23 @@ def _snap(box: tuple[float, float, float, float], width: int, height: int, p: Re
 
 
 def merge_regions(regions: list[Region], crop_cost_px: int = 0) -> list[Region]:
-    """Merge boxes that overlap (or touch), or whose common bounding box costs less than
-    `crop_cost_px` pixels more than the two apart, until none does. A target then lies in
-    one crop only (no duplicate detections, no target cut by another crop's edge)."""
+    """Merge crops until no two overlap, touch, or are cheaper together.
+
+    A target then lies in one crop only (no duplicate detections, no target cut by
+    another crop's edge).
+
+    Parameters
+    ----------
+    regions : list of Region
+    crop_cost_px : int, optional
+        Two crops also merge when their common bounding box has at most this many pixels
+        more than the two apart.
+
+    Returns
+    -------
+    list of Region
+        Sorted by (y0, x0); each carries the ids of the crops merged into it.
+    """
     # Plain lists: this runs every frame, on a handful of boxes.
     boxes = [[r.x0, r.y0, r.x1, r.y1, set(r.ids)] for r in regions]
     merged = True
@@ -286,8 +432,21 @@ def merge_regions(regions: list[Region], crop_cost_px: int = 0) -> list[Region]:
 
 def plan_regions(predicted: list[PredictedTarget], width: int, height: int, params: RegionParams | None = None
                  ) -> list[Region] | None:
-    """Crops covering the predicted boxes (snapped, clipped, merged), or None when they
-    cover more than ``max_fraction`` of the frame: then scan the whole frame."""
+    """Crops covering the predicted boxes: snapped outward to `align`, clipped, merged.
+
+    Parameters
+    ----------
+    predicted : list of PredictedTarget
+    width, height : int
+        Frame size, pixels.
+    params : RegionParams, optional
+
+    Returns
+    -------
+    list of Region or None
+        None when the crops cover more than ``max_fraction`` of the frame: scan the
+        whole frame instead.
+    """
     p = params or RegionParams()
     boxes = [Region(*_snap(t.box, width, height, p), ids=(t.id,)) for t in predicted]
     boxes = [b for b in boxes if b.width > 0 and b.height > 0]
@@ -300,9 +459,29 @@ def plan_regions(predicted: list[PredictedTarget], width: int, height: int, para
 def predict_regions(targets: MapTargets, camera: Camera, last: Pose, steps: float = 1.0,
                     before: Pose | None = None, before_steps: float = 1.0,
                     params: RegionParams | None = None) -> list[Region] | None:
-    """Regions to scan in a frame `steps` frames after the one seen from `last`
-    (`before`: the pose `before_steps` frames earlier still, for a velocity), or None
-    for the whole frame. An empty list: no mapped target can be in view."""
+    """The regions to scan in the next frame of a tracking stream.
+
+    Parameters
+    ----------
+    targets : MapTargets
+        The map's targets.
+    camera : Camera
+    last : Pose
+        The last known pose (map to camera).
+    steps : float, optional
+        Frames from the one seen from `last` to the one to scan.
+    before : Pose or None, optional
+        The pose `before_steps` frames before `last`, for a velocity.
+    before_steps : float, optional
+        Frames from `before` to `last`.
+    params : RegionParams, optional
+
+    Returns
+    -------
+    list of Region or None
+        The crops to scan; None: scan the whole frame; an empty list: no mapped target
+        can be in view.
+    """
     p = params or RegionParams()
     if before is not None:
         pose = extrapolate(before, last, steps / max(before_steps, 1e-9))

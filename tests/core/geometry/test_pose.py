@@ -140,8 +140,8 @@ def test_every_method_handles_a_single_target() -> None:
 def test_far_card_with_surveyed_discs_gets_the_right_tilt() -> None:
     """One small far card whose discs are a fraction of a millimetre off its plane (as
     surveyed: each disc is its own 3D point). Its two tilts fit almost alike; SQPnP
-    alone returned the wrong one in ~1 of 5 cases, a pose metres away (bench_survey's
-    tracking walk: 2.3 m off in one frame). Both planar starts are now refined."""
+    alone returns the wrong one in ~1 of 5 cases, a pose metres away, so both planar
+    starts are refined too."""
     rng = np.random.default_rng(12)
     wrong = 0
     for _ in range(60):

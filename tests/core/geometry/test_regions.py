@@ -7,15 +7,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from app.core.geometry import regions as R
-from app.core.geometry.camera import Camera, Pose
 from app.core.detection.candidates import load_default_classifier, pyramid
 from app.core.detection.detector import Detector, _pack
+from app.core.geometry import regions as R
+from app.core.geometry.camera import Camera, Pose
+from app.sim.examples import BENCH_CAMERA, BENCH_ROOM
 from app.sim.render import visible_points
-from app.sim.scenes import camera_walk, frame_truth, render_walk, room_scene
+from app.sim.scenes import frame_truth, render_walk
 
-CAMERA = Camera(np.array([[820.0, 0, 319.5], [0, 820.0, 239.5], [0, 0, 1]]), np.array([-0.12, 0.0, 0, 0, 0]),
-                640, 480)
+CAMERA = BENCH_CAMERA
 
 
 def _card(centre: np.ndarray, right: np.ndarray, down: np.ndarray, size: float = 0.2) -> np.ndarray:
@@ -30,12 +30,11 @@ RIGHT, DOWN = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
 
 @pytest.fixture(scope="module")
 def room() -> tuple:
-    """The bench's room and walk (seed 3, 300-frame tracking walk), 16 frames rendered."""
-    rng = np.random.default_rng(3)
-    scene = room_scene(rng, (8.0, 6.0, 3.0), n_targets=30, marker_size_m=0.2)
-    poses = camera_walk(rng, scene.room_size, 300, kind="tracking")
+    """The bench room and a walk through it (seed 3, 300-frame tracking walk), 16 frames rendered."""
+    walk = BENCH_ROOM.walk(3, 300, kind="tracking")
+    scene, poses = walk.scene, walk.poses
     picked = list(range(40, 280, 15))
-    images = [image for image, _ in render_walk(scene, CAMERA, [poses[i] for i in picked], rng)]
+    images = [image for image, _ in render_walk(scene, CAMERA, [poses[i] for i in picked], walk.rng)]
     targets = R.MapTargets.from_discs({t.id: t.discs for t in scene.targets})
     return scene, poses, picked, images, targets
 
