@@ -1,9 +1,10 @@
-"""The ``fidotrack`` command: ``fidotrack serve`` and ``fidotrack markers``."""
+"""The ``fidotrack`` command: ``serve``, ``markers``, ``keys`` and ``synth``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from tqdm import tqdm
@@ -50,14 +51,13 @@ def _markers(args: argparse.Namespace) -> int:
 
 
 def _synth_frames(args: argparse.Namespace) -> int:
+    import dataclasses
     import json
 
     import cv2
     import numpy as np
 
     from app.sim import scenes
-
-    import dataclasses
 
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -81,8 +81,8 @@ def _synth_room(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from app.sim import scenes
     from app.core.geometry import Camera
+    from app.sim import scenes
 
     size = tuple(float(v) for v in args.room.split("x"))
     if len(size) != 3:
@@ -151,6 +151,23 @@ def _keys(args: argparse.Namespace) -> int:
     return 0
 
 
+class _ScenarioNames(Sequence[str]):
+    """The simulator's scenario names, sorted, loaded when argparse first looks at them
+    (parsing or help): building the parser, as every command does, loads no simulator.
+    The option names its metavar, else argparse would list the names at once."""
+
+    def _names(self) -> list[str]:
+        from app.sim.scenes import SCENARIOS
+
+        return sorted(SCENARIOS)
+
+    def __getitem__(self, index: int) -> str:  # type: ignore[override]
+        return self._names()[index]
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fidotrack", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -182,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth = commands.add_parser("synth", help="render simulated frames with ground truth")
     kinds = synth.add_subparsers(dest="kind", required=True)
     frames = kinds.add_parser("frames", help="single frames of a named scenario")
-    frames.add_argument("--scenario", default="default", choices=sorted(scenes_names()))
+    frames.add_argument("--scenario", default="default", choices=_ScenarioNames(), metavar="SCENARIO",
+                        help="one of %(choices)s (default: %(default)s)")
     frames.add_argument("--count", type=int, default=10)
     frames.add_argument("--degradation", choices=["none", "default", "blur", "dark", "full"],
                         help="override the scenario's degradation preset")
@@ -207,12 +225,6 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("--family", default="fido3x3")
         sub.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return parser
-
-
-def scenes_names() -> list[str]:
-    from app.sim.scenes import SCENARIOS
-
-    return list(SCENARIOS)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,45 +1,56 @@
-"""FastAPI dependencies, as annotated types (``SessionDep``, ``SettingsDep``)."""
+"""FastAPI dependencies, as annotated types (``SessionDep``, ``SettingsDep``, ...): the
+application's shared state, for HTTP routes and WebSockets alike."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, WebSocketException
-from starlette.requests import HTTPConnection
+from fastapi import Depends, HTTPException, WebSocketException
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session
+from starlette.requests import HTTPConnection
 
 from app.services import keys
 from app.services.detection import DetectorCache
 from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
+from app.services.streaming import TrackStreams
+from app.services.tracking import TrackingService
 from app.settings import Settings
 
 
-def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
+def get_settings(connection: HTTPConnection) -> Settings:
+    return connection.app.state.settings
 
 
-def get_engine(request: Request) -> Engine:
-    return request.app.state.engine
+def get_engine(connection: HTTPConnection) -> Engine:
+    return connection.app.state.engine
 
 
-def get_session(request: Request) -> Iterator[Session]:
-    with request.app.state.sessionmaker() as session:
+def get_session(connection: HTTPConnection) -> Iterator[Session]:
+    with connection.app.state.sessionmaker() as session:
         yield session
 
 
-def get_metrics(request: Request) -> Metrics:
-    return request.app.state.metrics
+def get_metrics(connection: HTTPConnection) -> Metrics:
+    return connection.app.state.metrics
 
 
-def get_detectors(request: Request) -> DetectorCache:
-    return request.app.state.detectors
+def get_detectors(connection: HTTPConnection) -> DetectorCache:
+    return connection.app.state.detectors
 
 
-def get_jobs(request: Request) -> JobRunner:
-    return request.app.state.jobs
+def get_jobs(connection: HTTPConnection) -> JobRunner:
+    return connection.app.state.jobs
+
+
+def get_tracking(connection: HTTPConnection) -> TrackingService:
+    return connection.app.state.tracking
+
+
+def get_track_streams(connection: HTTPConnection) -> TrackStreams:
+    return connection.app.state.track_streams
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -48,6 +59,8 @@ SessionDep = Annotated[Session, Depends(get_session)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 DetectorsDep = Annotated[DetectorCache, Depends(get_detectors)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
+TrackingDep = Annotated[TrackingService, Depends(get_tracking)]
+TrackStreamsDep = Annotated[TrackStreams, Depends(get_track_streams)]
 
 
 # --- API keys -------------------------------------------------------------------------

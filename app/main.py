@@ -27,8 +27,9 @@ from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
 from app.services.jobs import JobRunner
-from app.services.tracking import TrackingContexts
 from app.services.metrics import Metrics
+from app.services.streaming import TrackStreams
+from app.services.tracking import TrackingService
 from app.settings import Settings
 
 log = logging.getLogger("app")
@@ -55,9 +56,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.sessionmaker = sessions
     app.state.jobs = runner
     app.state.detectors = DetectorCache()
-    app.state.tracking = TrackingContexts(app.state.detectors)
+    app.state.tracking = TrackingService(detectors=app.state.detectors, sessions=sessions, settings=settings)
     # Frames of all clients share a few worker threads (OpenCV releases the GIL).
-    app.state.track_limiter = anyio.CapacityLimiter(settings.track_threads)
+    app.state.track_streams = TrackStreams(app.state.tracking, settings=settings,
+                                           limiter=anyio.CapacityLimiter(settings.track_threads))
     try:
         yield
     finally:

@@ -1,9 +1,10 @@
 """Pure ASGI middleware (no task groups around ``receive``, so an error raised while a
 body is read reaches the exception handlers as itself).
 
-`BodyLimit`: request body limits, enforced before and while the body is read. A declared Content-Length over the limit is refused with 413 before a byte of the body
-is read; a body without one (chunked) is counted as it streams in and refused as soon as
-it passes the limit, so nothing ever holds more than the limit in memory or on disk.
+`BodyLimit`: request body limits, enforced before and while the body is read. A declared
+Content-Length over the limit is refused with 413 before a byte of the body is read; a
+body without one (chunked) is counted as it streams in and refused as soon as it passes
+the limit, so nothing ever holds more than the limit in memory or on disk.
 """
 
 from __future__ import annotations

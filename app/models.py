@@ -25,6 +25,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from app.db import Base, utcnow
+from app.schemas import JobStatus
 
 
 class Environment(Base):
@@ -58,7 +59,7 @@ class SurveyMap(Base):
     """The surveyed (or imported) 3D disc positions of an environment and its camera.
 
     One per environment; a new survey or import replaces it in one transaction.
-    ``document`` is the DESIGN.md map document, validated before it is stored.
+    ``document`` is the map document (``app.schemas.MapDocument``), validated before it is stored.
     """
 
     __tablename__ = "maps"
@@ -116,16 +117,13 @@ class Job(Base):
 
     __tablename__ = "jobs"
     __table_args__ = (
-        CheckConstraint(
-            "status IN ('queued', 'running', 'succeeded', 'failed', 'cancelled')",
-            name="status_known",
-        ),
+        CheckConstraint(f"status IN ({', '.join(repr(s.value) for s in JobStatus)})", name="status_known"),
         CheckConstraint("progress >= 0 AND progress <= 1", name="progress_fraction"),
     )
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     kind: Mapped[str] = mapped_column(String(32))
-    status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED.value, index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str] = mapped_column(String(64), default="queued")
     message: Mapped[str] = mapped_column(Text, default="")

@@ -1,8 +1,11 @@
-"""Pydantic models of the HTTP API: what clients send and what they get back."""
+"""Pydantic models of the API: what clients send and what they get back, over HTTP and
+over the ``/track`` WebSocket. Importing this module has no side effects (the protocol and
+configuration pages of the documentation are generated from it)."""
 
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import IntEnum, StrEnum
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -107,7 +110,7 @@ class MapTarget(BaseModel):
 
 
 class MapDocument(BaseModel):
-    """The map of an environment (DESIGN.md): camera and 3D disc centres of every target."""
+    """The map of an environment: its camera and the 3D disc centres of every target (metres)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -155,12 +158,23 @@ class MarkerLayoutOut(BaseModel):
 # --- jobs and classifiers -----------------------------------------------------------
 
 
+class JobStatus(StrEnum):
+    """Where a job is: ``queued``, then ``running``, then one of ``succeeded``, ``failed`` or
+    ``cancelled`` (a queued job may also end cancelled or failed without running)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
 class JobOut(BaseModel):
     """A long piece of work: its stage and progress while it runs, its result after."""
 
     id: str
     kind: str
-    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    status: JobStatus
     progress: float = Field(ge=0, le=1)
     stage: str
     message: str
@@ -193,7 +207,9 @@ class ClassifierOut(BaseModel):
 
 class DetectedTargetOut(BaseModel):
     id: int
-    discs: list[list[float]] = Field(description="Disc centres [u, v] in pixels, DESIGN.md order.")
+    discs: list[list[float]] = Field(
+        description="Disc centres [u, v] in pixels: top-left, top-right, bottom-right, bottom-left of the card."
+    )
     score: float
 
 
@@ -230,6 +246,126 @@ class LocateResponse(BaseModel):
     timing_ms: dict[str, float]
 
 
+# --- tracking: the /track WebSocket ---------------------------------------------------
+#
+# The client sends frames as binary messages (JPEG, or PNG) and, whenever it likes, a
+# `TrackConfig` as a text message. The server sends JSON text messages: one `TrackHello`
+# first, then a `TrackFrame` per processed frame, a `TrackConfig` echo per accepted
+# config, and a `TrackError` for each message it cannot use. A connection the server
+# refuses gets one `TrackRefusal` and is closed.
+
+PoseMethod = Literal["nonlinear", "posit", "mean", "single"]
+#: Why a frame was scanned as it was: ``first`` (no pose yet), ``regions`` (only around
+#: the predicted targets), ``periodic`` (every ``full_scan_every`` frames), ``lost`` (the
+#: previous frame had no pose), ``fallback`` (the regions gave no pose, so the whole
+#: frame was searched at once), ``wide`` (the regions would cover most of the frame),
+#: ``stale`` (too many frames since the last pose), ``camera`` (the intrinsics or the
+#: frame size changed), ``off`` (regions switched off by config).
+ScanReason = Literal["first", "regions", "periodic", "lost", "fallback", "wide", "stale", "camera", "off"]
+
+
+#: Codes of `TrackError` (the connection stays open).
+TrackErrorCode = Literal["bad_message", "bad_config", "bad_frame", "frame_too_large", "rate_limited",
+                         "internal_error"]
+#: Codes of `TrackRefusal` (the connection is closed).
+TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections"]
+
+
+class TrackCloseCode(IntEnum):
+    """WebSocket close codes of ``/track``."""
+
+    POLICY_VIOLATION = 1008  # a refused request: bad query, unknown environment, no map, missing API key
+    SERVER_ERROR = 1011  # the connection failed on the server's side
+    TRY_AGAIN_LATER = 1013  # the server already tracks ``max_track_connections`` connections
+
+
+class TrackConfig(BaseModel):
+    """Client -> server (text message): change how this connection's frames are processed.
+    Fields left out take their defaults; the server echoes the whole config it now uses."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    type: Literal["config"] = Field("config", description='Always "config".')
+    method: PoseMethod = Field("nonlinear", description=(
+        "Pose estimator: nonlinear (the paper's: reprojection error of every disc minimised with the full "
+        "lens model); posit, mean (of single-target poses) and single (the largest target alone) for "
+        "comparison."))
+    estimate_focal: bool = Field(False, description="Free the focal length per frame (zoom lens).")
+    intrinsics: CameraModel | None = Field(None, description="Override the map's camera (K, dist, size).")
+    regions: bool = Field(True, description="Search only around the targets the previous poses predict "
+                                            "(false: scan every whole frame).")
+    full_scan_every: int = Field(30, ge=1, le=1_000_000,
+                                 description="With regions, scan the whole frame at least every this many "
+                                             "frames (finds targets the prediction misses).")
+
+
+class TrackHello(BaseModel):
+    """Server -> client, first: the connection is accepted and tracks against this map."""
+
+    type: Literal["hello"] = Field("hello", description='Always "hello".')
+    environment_id: int = Field(description="The environment whose map the poses refer to.")
+    camera: CameraModel = Field(description="The map's camera; frames of another size are tracked with it "
+                                            "scaled to their size.")
+    targets: int = Field(description="Number of targets in the map.")
+
+
+class TrackFrame(BaseModel):
+    """Server -> client: the targets and the camera pose of one processed frame."""
+
+    type: Literal["frame"] = Field("frame", description='Always "frame".')
+    seq: int = Field(description="The frame's index among the binary messages of this connection, from 0.")
+    width: int = Field(description="Width of the decoded frame in pixels.")
+    height: int = Field(description="Height of the decoded frame in pixels.")
+    targets: list[DetectedTargetOut] = Field(description="Targets found and identified in the frame.")
+    pose: PoseOut | None = Field(description="The camera pose in map coordinates; null when the visible "
+                                             "targets do not determine it.")
+    pose_error: str | None = Field(description="Why there is no pose, when there is none.")
+    timing_ms: dict[str, float] = Field(description=(
+        "Server time per stage in milliseconds (decode, plan, candidates, targets, detect, pose, total); "
+        "``regions`` counts the regions searched when the frame was scanned by regions."))
+    dropped: int = Field(description="Frames received since the previous reply that newer frames replaced "
+                                     "before they were processed (the newest frame is never dropped).")
+    scan: Literal["full", "regions"] = Field(description="Whether the whole frame or only the predicted "
+                                                         "regions were searched.")
+    scan_reason: ScanReason = Field(description="Why the frame was scanned so (see `ScanReason`).")
+
+
+class TrackError(BaseModel):
+    """Server -> client: one message could not be used; the connection stays open."""
+
+    type: Literal["error"] = Field("error", description='Always "error".')
+    code: TrackErrorCode = Field(description=(
+        "bad_message: a text message that is not a config; bad_config: a config that does not validate; "
+        "bad_frame: a frame that cannot be decoded or is too small; frame_too_large: a frame over "
+        "max_frame_bytes; rate_limited: frames over max_track_fps are being dropped (at most one such "
+        "message a second); internal_error: the server failed on this frame."))
+    message: str = Field(description="What was wrong, for a person.")
+    seq: int | None = Field(description="The frame concerned (its index among the binary messages); null "
+                                        "for text messages.")
+
+
+class TrackRefusal(BaseModel):
+    """Server -> client: the connection is refused and closed right after this message (close
+    code 1013 for ``too_many_connections``, else 1008)."""
+
+    type: Literal["error"] = Field("error", description='Always "error".')
+    code: TrackRefusalCode = Field(description=(
+        "bad_request: environment_id is missing or not an integer; unknown_environment: no such environment; "
+        "no_map: the environment has no map yet; too_many_connections: try again later."))
+    message: str = Field(description="Why, for a person.")
+
+    @property
+    def close_code(self) -> TrackCloseCode:
+        """The WebSocket close code that follows this message."""
+        if self.code == "too_many_connections":
+            return TrackCloseCode.TRY_AGAIN_LATER
+        return TrackCloseCode.POLICY_VIOLATION
+
+
+#: Every message the server sends on ``/track``.
+TrackServerMessage = TrackHello | TrackFrame | TrackConfig | TrackError | TrackRefusal
+
+
 # --- alignment ----------------------------------------------------------------------
 
 
@@ -237,7 +373,9 @@ class AlignmentPoint(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     target_id: int = Field(ge=0)
-    disc: int = Field(ge=0, le=3, description="Disc index 0..3 (DESIGN.md order).")
+    disc: int = Field(
+        ge=0, le=3, description="Disc index 0..3: top-left, top-right, bottom-right, bottom-left of the card."
+    )
     world: Vec3 = Field(description="Known world position of that disc centre (m).")
 
 

@@ -9,7 +9,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from app.deps import JobsDep, SessionDep, SettingsDep
 from app.routers.uploads import read_upload
 from app.schemas import ClassifierOut, JobOut, Problem
-from app.services import classifiers
+from app.services import classifiers, training
 
 router = APIRouter(prefix="/classifiers", tags=["classifiers"])
 _404 = {404: {"model": Problem, "description": "No such classifier"}}
@@ -41,6 +41,7 @@ async def train_classifier(
     the current detector finds and verifies become positives, the candidates it
     rejects become hard negatives. Returns the job (202, ``Location: /jobs/{id}``)."""
     blobs = [await read_upload(upload, settings.max_image_bytes) for upload in images]
-    job = classifiers.submit_training(session, runner, settings, blobs, name, base_classifier_id, family)
+    job = training.submit_training(session, runner, settings, images=blobs, name=name,
+                                   base_classifier_id=base_classifier_id, family=family)
     response.headers["Location"] = f"/jobs/{job.id}"
     return job

@@ -33,6 +33,5 @@ async def detect(
     """Find and identify the targets in a JPEG or PNG image."""
     data = await read_image_body(request, settings.max_image_bytes)
     # Decoding and detection hold the CPU: off the event loop.
-    return await run_in_threadpool(
-        detection.detect, session, detectors, settings, data, classifier_id, family, candidates
-    )
+    return await run_in_threadpool(detection.detect, session, detectors, settings, data,
+                                   classifier_id=classifier_id, family=family, with_candidates=candidates)

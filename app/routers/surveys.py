@@ -37,9 +37,9 @@ def start_survey(
     it replaces the environment's map in one transaction."""
     job = surveys.submit_survey(
         session, runner, settings, environment_id,
-        video.file if video is not None else None,
-        [upload.file for upload in images or []],
-        marker_size_m, intrinsics, max_frames,
+        video=video.file if video is not None else None,
+        images=[upload.file for upload in images or []],
+        marker_size_m=marker_size_m, intrinsics=intrinsics, max_frames=max_frames,
     )
     response.headers["Location"] = f"/jobs/{job.id}"
     return job

@@ -1,25 +1,21 @@
-"""Detection for the API: decode a client image safely, run the environment's (or a
-chosen) classifier, shape the reply. Detectors are built once and shared."""
+"""Detection for the API: run the environment's (or a chosen) classifier on a client
+image and shape the reply. Detectors are built once and shared."""
 
 from __future__ import annotations
 
 import threading
 
-import numpy as np
-
 from sqlalchemy.orm import Session
 
-from app.core.detection import MIN_SIDE, Detection, Detector
-from app.core.imagecodec import ImageError, decode_gray
+from app.core.detection import Detection, Detector
+from app.core.markers import FAMILIES
 from app.schemas import DetectedTargetOut, DetectResponse
-from app.services import classifiers
-from app.services.errors import Invalid, NotFound, TooLarge, UnsupportedMedia
+from app.services import classifiers, images
+from app.services.errors import MAX_ID, Invalid, NotFound
 from app.settings import Settings
 
-
-# Database ids are signed 64-bit; a bigger one matches nothing (and must not reach the
-# driver, which raises OverflowError: a 500).
-MAX_ID = 2**63 - 1
+#: A detector's key: (classifier id, marker family).
+DetectorKey = tuple[int, str]
 
 
 class DetectorCache:
@@ -28,9 +24,9 @@ class DetectorCache:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._detectors: dict[tuple[int, str], Detector] = {}
+        self._detectors: dict[DetectorKey, Detector] = {}
 
-    def get_loaded(self, key: tuple[int, str]) -> Detector | None:
+    def get_loaded(self, key: DetectorKey) -> Detector | None:
         with self._lock:
             return self._detectors.get(key)
 
@@ -45,27 +41,6 @@ class DetectorCache:
         return found
 
 
-def decode(data: bytes, settings: Settings) -> np.ndarray:
-    """Client bytes to a greyscale frame, or a clear 4xx."""
-    if len(data) > settings.max_image_bytes:
-        raise TooLarge(f"image of {len(data)} bytes exceeds the limit of {settings.max_image_bytes} bytes")
-    try:
-        gray = decode_gray(data, settings.max_image_pixels)
-    except ImageError as exc:
-        if exc.kind == "too_large":
-            raise TooLarge(str(exc)) from None
-        if exc.kind == "unsupported":
-            raise UnsupportedMedia(str(exc)) from None
-        raise Invalid(str(exc)) from None
-    if min(gray.shape) < MIN_SIDE:
-        # The detector looks through a window of this size; a smaller frame is a client
-        # error, not a detector failure (it used to surface as a 500).
-        raise Invalid(
-            f"the image is {gray.shape[1]}x{gray.shape[0]} pixels; both sides must be at least {MIN_SIDE}"
-        )
-    return gray
-
-
 def to_response(detection: Detection, width: int, height: int, classifier_id: int,
                 with_candidates: bool) -> DetectResponse:
     return DetectResponse(
@@ -78,22 +53,14 @@ def to_response(detection: Detection, width: int, height: int, classifier_id: in
     )
 
 
-def detect(
-    session: Session,
-    cache: DetectorCache,
-    settings: Settings,
-    data: bytes,
-    classifier_id: int | None,
-    family: str,
-    with_candidates: bool,
-) -> DetectResponse:
-    from app.core.markers import FAMILIES
-
+def detect(session: Session, cache: DetectorCache, settings: Settings, data: bytes, *, classifier_id: int | None,
+           family: str, with_candidates: bool) -> DetectResponse:
+    """The targets in one client image (and every candidate disc, `with_candidates`)."""
     if family not in FAMILIES:
         raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
     if classifier_id is not None and not 0 <= classifier_id <= MAX_ID:
         raise NotFound(f"classifier {classifier_id} not found")
-    gray = decode(data, settings)
+    gray = images.decode(data, settings)
     chosen = classifier_id if classifier_id is not None else classifiers.default_id(session)
     detector = cache.get(session, chosen, family)
     detection = detector.detect(gray)

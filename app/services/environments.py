@@ -6,8 +6,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.markers import get_family
-from app.models import Classifier, Environment, SurveyMap
+from app.models import Environment, SurveyMap
 from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument
+from app.services import classifiers
 from app.services.errors import Invalid, NotFound, get_or_404
 
 
@@ -24,8 +25,14 @@ def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
     )
 
 
-def _environment(session: Session, environment_id: int) -> Environment:
+def get_row(session: Session, environment_id: int) -> Environment:
+    """The environment's row, or NotFound."""
     return get_or_404(session, Environment, environment_id, "environment")
+
+
+def stored_map(session: Session, environment_id: int) -> SurveyMap | None:
+    """The environment's stored map row, if it has one."""
+    return session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
 
 
 def _has_map(session: Session, environment_id: int) -> bool:
@@ -37,7 +44,7 @@ def _check_classifier(session: Session, classifier_id: int | None) -> None:
     if classifier_id is None:
         return
     try:
-        get_or_404(session, Classifier, classifier_id, "classifier")
+        classifiers.get_row(session, classifier_id)
     except NotFound:
         raise Invalid(f"classifier_id: classifier {classifier_id} does not exist") from None
 
@@ -57,12 +64,12 @@ def list_all(session: Session) -> list[EnvironmentOut]:
 
 
 def get(session: Session, environment_id: int) -> EnvironmentOut:
-    environment = _environment(session, environment_id)
+    environment = get_row(session, environment_id)
     return to_out(environment, _has_map(session, environment_id))
 
 
 def update(session: Session, environment_id: int, changes: EnvironmentUpdate) -> EnvironmentOut:
-    environment = _environment(session, environment_id)
+    environment = get_row(session, environment_id)
     fields = changes.model_dump(exclude_unset=True)
     for required in ("name", "marker_size_m"):
         if required in fields and fields[required] is None:
@@ -76,13 +83,13 @@ def update(session: Session, environment_id: int, changes: EnvironmentUpdate) ->
 
 
 def delete(session: Session, environment_id: int) -> None:
-    session.delete(_environment(session, environment_id))
+    session.delete(get_row(session, environment_id))
     session.commit()
 
 
 def get_map(session: Session, environment_id: int) -> MapDocument:
-    _environment(session, environment_id)
-    stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
+    get_row(session, environment_id)
+    stored = stored_map(session, environment_id)
     if stored is None:
         raise NotFound(f"environment {environment_id} has no map yet: run a survey or PUT one")
     return MapDocument.model_validate(stored.document)
@@ -99,14 +106,14 @@ def put_map(session: Session, environment_id: int, document: MapDocument) -> Map
 def stage_map(session: Session, environment_id: int, document: MapDocument) -> None:
     """Check `document` against the environment and stage it as the new map; the caller
     commits (a survey job commits it together with its own success)."""
-    environment = _environment(session, environment_id)
+    environment = get_row(session, environment_id)
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
     if outside:
         raise Invalid(
             f"targets: ids {outside[:10]} are outside family {family.name} (0..{len(family) - 1})"
         )
-    stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
+    stored = stored_map(session, environment_id)
     if stored is None:
         stored = SurveyMap(environment_id=environment_id)
         session.add(stored)

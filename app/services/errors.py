@@ -6,6 +6,10 @@ from sqlalchemy.orm import Session
 
 T = TypeVar("T")
 
+#: Database ids are signed 64-bit: a larger one matches nothing, and must not reach the
+#: database driver (which raises OverflowError on it).
+MAX_ID = 2**63 - 1
+
 
 class ServiceError(Exception):
     """Base of the errors a client caused; ``status_code`` is the HTTP status."""
@@ -40,14 +44,13 @@ class Conflict(ServiceError):
     status_code = 409
 
 
+class TooMany(ServiceError):
+    status_code = 429
+
+
 def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
     """The row of ``model`` with primary key ``key``, or NotFound("<what> <key> not found")."""
-    # Ids past 64 bits cannot exist (and the database driver would overflow on them).
-    row = None if isinstance(key, int) and not -(2**63) <= key < 2**63 else session.get(model, key)
+    row = None if isinstance(key, int) and not -MAX_ID - 1 <= key <= MAX_ID else session.get(model, key)
     if row is None:
         raise NotFound(f"{what} {key} not found")
     return row
-
-
-class TooMany(ServiceError):
-    status_code = 429

@@ -16,23 +16,21 @@ import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO, Literal
 
 import cv2
 import numpy as np
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from sqlalchemy.orm import Session
 
-from app.core.geometry import Camera
 from app.core.detection import Detector
+from app.core.geometry import Camera
 from app.core.imagecodec import PNG_MAGIC, decode_gray
 from app.core.survey import SurveyError, survey
-from app.models import Environment
 from app.schemas import CameraModel, JobOut, MapDocument
-from app.services import classifiers, environments, jobs
-from app.services.detection import decode
-from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia, get_or_404
-from app.services.jobs import JobRunner
+from app.services import classifiers, environments, images, jobs
+from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia
+from app.services.jobs import JobContext, JobKind, JobResult, JobRunner, job_handler
 from app.settings import Settings
 
 _CHUNK = 1024 * 1024
@@ -108,11 +106,12 @@ def probe_video(path: Path, settings: Settings) -> VideoInfo:
     return VideoInfo(width, height, frames, fps, codec)
 
 
-def parse_intrinsics(text: str | None) -> dict[str, Any] | None:
+def parse_intrinsics(text: str | None) -> CameraModel | None:
+    """The ``intrinsics`` form field (JSON), or None when it is absent or blank."""
     if text is None or not text.strip():
         return None
     try:
-        return CameraModel.model_validate(json.loads(text)).model_dump()
+        return CameraModel.model_validate(json.loads(text))
     except json.JSONDecodeError as exc:
         raise Invalid(f"intrinsics: not JSON ({exc.msg})") from None
     except ValidationError as exc:
@@ -120,11 +119,29 @@ def parse_intrinsics(text: str | None) -> dict[str, Any] | None:
         raise Invalid(f"intrinsics: {detail}") from None
 
 
+class SurveyParams(BaseModel):
+    """A survey job: where its frames are, which of them to use, and what is known."""
+
+    upload_dir: str
+    source: Literal["video", "images"]
+    video: str | None = None  # the stored video (source "video")
+    video_frames: int | None = None  # its frame count as the container states it
+    width: int
+    height: int
+    marker_size_m: float
+    intrinsics: CameraModel | None  # a fixed camera, at the upload's size; None: calibrated by the survey
+    max_frames: int
+    classifier_id: int
+    family: str
+    max_pixels: int
+
+
 def submit_survey(
     session: Session,
     runner: JobRunner,
     settings: Settings,
     environment_id: int,
+    *,
     video: BinaryIO | None,
     images: Sequence[BinaryIO],
     marker_size_m: float | None,
@@ -133,7 +150,7 @@ def submit_survey(
 ) -> JobOut:
     """Check and store the upload, queue the survey job. Nothing stays on disk and no
     row is written when the upload is refused."""
-    environment = get_or_404(session, Environment, environment_id, "environment")
+    environment = environments.get_row(session, environment_id)
     if (video is None) == (not images):
         raise Invalid("give either a 'video' file or one or more 'images' files")
     if marker_size_m is not None and not (0.0 < marker_size_m <= 10.0):
@@ -143,56 +160,60 @@ def submit_survey(
     if len(images) > settings.max_survey_images:
         raise Invalid(f"images: at most {settings.max_survey_images} images per survey")
     camera = parse_intrinsics(intrinsics)
-    classifier_id = environment.classifier_id or classifiers.default_id(session)
+    classifier_id = classifiers.for_environment(session, environment)
     job_id = jobs.new_job_id()
     folder = jobs.uploads_dir(settings.data_dir, job_id)
     folder.mkdir(parents=True, exist_ok=True)
     try:
         budget = [0]
-        params: dict[str, Any] = {
-            "upload_dir": str(folder),
-            "marker_size_m": float(marker_size_m or environment.marker_size_m),
-            "intrinsics": camera,
-            "max_frames": int(max_frames or settings.survey_frames),
-            "classifier_id": classifier_id,
-            "family": environment.marker_family,
-            "max_pixels": settings.max_image_pixels,
-        }
+        video_path, video_frames = None, None
         if video is not None:
             path = folder / "video"
             _save_stream(video, path, settings.max_upload_bytes, budget)
             info = probe_video(path, settings)
-            params.update(source="video", video=str(path), video_frames=info.frames, width=info.width,
-                          height=info.height)
+            video_path, video_frames, width, height = str(path), info.frames, info.width, info.height
         else:
-            size = None
-            for index, stream in enumerate(images):
-                path = folder / f"image_{index:05d}"
-                _save_stream(stream, path, settings.max_upload_bytes, budget)
-                data = path.read_bytes()
-                try:
-                    gray = decode(data, settings)
-                except ServiceError as exc:
-                    exc.detail = f"images[{index}]: {exc.detail}"
-                    raise
-                if size is None:
-                    size = gray.shape
-                elif gray.shape != size:
-                    raise Invalid(f"images[{index}]: {gray.shape[1]}x{gray.shape[0]} differs from the first "
-                                  f"image's {size[1]}x{size[0]}; one camera, one resolution")
-                path.rename(path.with_suffix(".png" if data.startswith(PNG_MAGIC) else ".jpg"))
-            assert size is not None
-            params.update(source="images", width=int(size[1]), height=int(size[0]))
-        if camera is not None and (camera["width"], camera["height"]) != (params["width"], params["height"]):
-            scaled = Camera.from_dict(camera).scaled_to(params["width"], params["height"])
-            params["intrinsics"] = scaled.to_dict()
-        job = jobs.create(session, "survey", params, environment_id=environment_id, job_id=job_id,
-                          max_active=settings.max_queued_jobs)
+            width, height = _store_images(images, folder, settings, budget)
+        if camera is not None and (camera.width, camera.height) != (width, height):
+            scaled = Camera.from_dict(camera.model_dump()).scaled_to(width, height)
+            camera = CameraModel.model_validate(scaled.to_dict())
+        params = SurveyParams(
+            upload_dir=str(folder), source="video" if video is not None else "images", video=video_path,
+            video_frames=video_frames, width=width, height=height,
+            marker_size_m=float(marker_size_m or environment.marker_size_m), intrinsics=camera,
+            max_frames=int(max_frames or settings.survey_frames), classifier_id=classifier_id,
+            family=environment.marker_family, max_pixels=settings.max_image_pixels,
+        )
+        job = runner.submit(session, JobKind.SURVEY, params, environment_id=environment_id, job_id=job_id,
+                            max_active=settings.max_queued_jobs)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    runner.submit(job.id, job.kind)
     return jobs.job_out(job)
+
+
+def _store_images(streams: Sequence[BinaryIO], folder: Path, settings: Settings, budget: list[int]
+                  ) -> tuple[int, int]:
+    """Store the uploaded images as ``image_NNNNN.png|jpg``, each decodable and all of
+    one size; that (width, height)."""
+    size = None
+    for index, stream in enumerate(streams):
+        path = folder / f"image_{index:05d}"
+        _save_stream(stream, path, settings.max_upload_bytes, budget)
+        data = path.read_bytes()
+        try:
+            gray = images.decode(data, settings)
+        except ServiceError as exc:
+            exc.detail = f"images[{index}]: {exc.detail}"
+            raise
+        if size is None:
+            size = gray.shape
+        elif gray.shape != size:
+            raise Invalid(f"images[{index}]: {gray.shape[1]}x{gray.shape[0]} differs from the first "
+                          f"image's {size[1]}x{size[0]}; one camera, one resolution")
+        path.rename(path.with_suffix(".png" if data.startswith(PNG_MAGIC) else ".jpg"))
+    assert size is not None
+    return int(size[1]), int(size[0])
 
 
 # --- in the worker process -----------------------------------------------------------
@@ -205,13 +226,14 @@ def _chosen(total: int, wanted: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, total - 1, wanted)).astype(int))
 
 
-def read_frames(params: dict[str, Any]) -> Iterator[tuple[int, int, np.ndarray]]:
+def read_frames(params: SurveyParams) -> Iterator[tuple[int, int, np.ndarray]]:
     """(position, count, greyscale frame) of the frames the survey uses."""
-    if params["source"] == "video":
-        capture = cv2.VideoCapture(params["video"], cv2.CAP_FFMPEG)
+    if params.source == "video":
+        assert params.video is not None
+        capture = cv2.VideoCapture(params.video, cv2.CAP_FFMPEG)
         try:
-            total = int(params["video_frames"]) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-            chosen = _chosen(total, int(params["max_frames"]))
+            total = int(params.video_frames or 0) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+            chosen = _chosen(total, params.max_frames)
             wanted = set(chosen.tolist())
             index = position = 0
             while position < len(chosen) and capture.grab():
@@ -224,21 +246,19 @@ def read_frames(params: dict[str, Any]) -> Iterator[tuple[int, int, np.ndarray]]
         finally:
             capture.release()
     else:
-        files = sorted(Path(params["upload_dir"]).glob("image_*"))
-        chosen = _chosen(len(files), int(params["max_frames"]))
+        files = sorted(Path(params.upload_dir).glob("image_*"))
+        chosen = _chosen(len(files), params.max_frames)
         for position, k in enumerate(chosen.tolist()):
-            yield position, len(chosen), decode_gray(files[k].read_bytes(), int(params["max_pixels"]))
+            yield position, len(chosen), decode_gray(files[k].read_bytes(), params.max_pixels)
 
 
-def run_survey_job(context: Any) -> dict[str, Any]:
-    """Job handler: detect, reconstruct, store the map (see the module docstring)."""
-
-    params = context.params
+@job_handler(JobKind.SURVEY, SurveyParams)
+def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
+    """Detect, reconstruct, store the map (see the module docstring)."""
     with context.sessions() as session:
         # Fitted disc centres: the survey averages many views of each disc, and the
         # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
-        detector = Detector(classifiers.load(session, int(params["classifier_id"])), str(params["family"]),
-                            fit_discs=True)
+        detector = Detector(classifiers.load(session, params.classifier_id), params.family, fit_discs=True)
     detections = []
     context.progress("detecting targets", 0.0)
     for position, count, gray in read_frames(params):
@@ -249,18 +269,19 @@ def run_survey_job(context: Any) -> dict[str, Any]:
     if found == 0:
         raise SurveyError(f"no target was found in any of the {len(detections)} frames: "
                           "check the video shows the printed targets, in focus and lit")
-    intrinsics = Camera.from_dict(params["intrinsics"]) if params.get("intrinsics") else None
+    intrinsics = Camera.from_dict(params.intrinsics.model_dump()) if params.intrinsics is not None else None
 
     def progress(stage: str, fraction: float) -> None:
         context.progress(stage, 0.5 + 0.48 * min(max(fraction, 0.0), 1.0))
 
-    result = survey(detections, int(params["width"]), int(params["height"]), float(params["marker_size_m"]),
-                    intrinsics=intrinsics, progress=progress)
+    result = survey(detections, params.width, params.height, params.marker_size_m, intrinsics=intrinsics,
+                    progress=progress)
     document = MapDocument.model_validate(result.to_map_document(frame="survey", survey_job_id=context.job_id))
     summary = result.summary()
     # The calibration trajectory: the camera of each frame used (None: not registered).
     summary.update({"frames_used": len(detections), "detections": found,
                     "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
+    assert context.environment_id is not None
     with context.finishing(summary) as session:
-        environments.stage_map(session, int(context.environment_id), document)
+        environments.stage_map(session, context.environment_id, document)
     return summary

@@ -18,13 +18,11 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.detection import Detection, Detector
 from app.core.geometry import (
@@ -40,29 +38,19 @@ from app.core.geometry import (
     estimate_pose,
     predict_regions,
 )
-from app.models import Environment, SurveyMap
-from app.schemas import CameraModel, MapDocument
-from app.services import classifiers
-from app.services.detection import MAX_ID, DetectorCache, decode
-from app.services.errors import Invalid, NotFound
+from app.schemas import (
+    CameraModel,
+    DetectedTargetOut,
+    LocateResponse,
+    MapDocument,
+    PoseOut,
+    ScanReason,
+    TrackConfig,
+)
+from app.services import classifiers, environments, images
+from app.services.detection import DetectorCache, DetectorKey
+from app.services.errors import Invalid
 from app.settings import Settings
-
-
-class TrackConfig(BaseModel):
-    """What a client may change with a ``{"type": "config", ...}`` message."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    type: Literal["config"] = "config"
-    method: Literal["nonlinear", "posit", "mean", "single"] = "nonlinear"
-    estimate_focal: bool = Field(False, description="Free the focal length per frame (zoom lens).")
-    intrinsics: CameraModel | None = Field(None, description="Override the map's camera (K, dist, size).")
-    regions: bool = Field(True, description="Search only around the targets the previous poses predict "
-                                            "(false: scan every whole frame).")
-    full_scan_every: int = Field(30, ge=1, le=1_000_000,
-                                 description="With regions, scan the whole frame at least every this many "
-                                             "frames (finds targets the prediction misses).")
-
 
 assert set(TrackConfig.model_fields["method"].annotation.__args__) == set(METHODS)  # type: ignore[union-attr]
 
@@ -74,56 +62,14 @@ class TrackingContext:
     environment_id: int
     map_version: str
     camera: Camera
+    camera_model: CameraModel  # the map's camera as clients get it
     discs: dict[int, np.ndarray]  # target id -> (4, 3) map coordinates
-    detector_key: tuple[int, str]
-    camera_dict: dict[str, Any] = field(default_factory=dict)
+    detector_key: DetectorKey
 
     @functools.cached_property
     def targets(self) -> MapTargets:
         """The map's discs stacked for region prediction (built on first use)."""
         return MapTargets.from_discs(self.discs)
-
-
-class TrackingContexts:
-    """Shared contexts by environment; reloaded when the stored map changes."""
-
-    def __init__(self, detectors: DetectorCache) -> None:
-        self.detectors = detectors
-        self._lock = threading.Lock()
-        self._contexts: dict[int, TrackingContext] = {}
-
-    def get(self, session: Session, environment_id: int) -> TrackingContext:
-        if not 0 <= environment_id <= MAX_ID:  # the driver would raise OverflowError
-            raise NotFound(f"environment {environment_id} not found")
-        environment = session.get(Environment, environment_id)
-        if environment is None:
-            raise NotFound(f"environment {environment_id} not found")
-        stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
-        if stored is None:
-            raise Invalid(f"environment {environment_id} has no map yet: run a survey or PUT a map first")
-        version = f"{stored.id}:{stored.updated_at.isoformat()}"
-        classifier_id = environment.classifier_id or classifiers.default_id(session)
-        with self._lock:
-            cached = self._contexts.get(environment_id)
-        if cached is not None and cached.map_version == version and cached.detector_key == (
-            classifier_id, environment.marker_family
-        ):
-            return cached
-        document = MapDocument.model_validate(stored.document)
-        camera = Camera.from_dict(document.camera.model_dump())
-        context = TrackingContext(
-            environment_id=environment_id,
-            map_version=version,
-            camera=camera,
-            discs={t.id: np.asarray(t.discs, np.float64) for t in document.targets},
-            detector_key=(classifier_id, environment.marker_family),
-            camera_dict=document.camera.model_dump(),
-        )
-        self.detectors.get(session, classifier_id, environment.marker_family)  # load once, now
-        _ = context.targets  # stacked for region prediction once, now
-        with self._lock:
-            self._contexts[environment_id] = context
-        return context
 
 
 # --------------------------------------------------------------------------------------
@@ -207,7 +153,7 @@ class TrackState:
 @dataclass(frozen=True)
 class StreamFrame:
     """A frame of a /track connection: its config, its seq and the connection's state
-    (`locate_frame` takes it in place of a bare config)."""
+    (`TrackingService.locate_frame` takes it in place of a bare config)."""
 
     config: TrackConfig
     seq: int
@@ -216,69 +162,111 @@ class StreamFrame:
 
 @dataclass(frozen=True)
 class FrameResult:
-    targets: list[dict[str, Any]]
-    pose: dict[str, Any] | None
+    """The outcome of one frame: its targets, the pose or why there is none, and how it was scanned."""
+
+    targets: list[DetectedTargetOut]
+    pose: PoseOut | None
     pose_error: str | None
     timing_ms: dict[str, float]
     width: int
     height: int
     scan: Literal["full", "regions"] = "full"
-    scan_reason: str = "single"
+    scan_reason: ScanReason | Literal["single"] = "single"
 
 
-def locate_frame(
-    context: TrackingContext,
-    detections: DetectorCache,
-    session_factory: Any,
-    settings: Settings,
-    data: bytes,
-    config: TrackConfig | StreamFrame,
-) -> FrameResult:
-    """Decode, detect, and estimate the pose of one frame (runs in a worker thread).
+class TrackingService:
+    """Tracking for one application: each environment's context (map and detector),
+    loaded once and shared by every client, reloaded when the stored map changes."""
 
-    `config`: a TrackConfig for a lone image (whole-frame scan), or a `StreamFrame` for
-    a /track frame (regions predicted from the connection's previous poses)."""
-    stream = config if isinstance(config, StreamFrame) else None
-    if stream is not None:
-        config = stream.config
-    assert isinstance(config, TrackConfig)
-    start = time.perf_counter()
-    gray = decode(data, settings)
-    decoded = time.perf_counter()
-    detector = detections.get_loaded(context.detector_key)
-    if detector is None:
-        with session_factory() as session:
-            detector = detections.get(session, *context.detector_key)
-    camera = context.camera
-    if config.intrinsics is not None:
-        camera = Camera.from_dict(config.intrinsics.model_dump())
-    if (gray.shape[1], gray.shape[0]) != (camera.width, camera.height):
-        camera = camera.scaled_to(gray.shape[1], gray.shape[0])
-    regions, reason = (None, "single") if stream is None else stream.state.plan(
-        stream.seq, camera, config, context.targets)
-    planned = time.perf_counter()
-    detection, estimate, pose_error, pose_ms = _detect_and_pose(detector, gray, regions, context, camera, config)
-    timing = {"decode": (decoded - start) * 1e3, "plan": (planned - decoded) * 1e3, **detection.timing_ms}
-    if estimate is None and regions is not None:
-        # Lost in the regions (fast motion, a wrong prior): the whole frame, now.
-        reason, regions = "fallback", None
-        detection, estimate, pose_error, more_ms = _detect_and_pose(detector, gray, None, context, camera, config)
-        pose_ms += more_ms
-        for key, value in detection.timing_ms.items():
-            timing[key] = timing.get(key, 0.0) + value
-    if stream is not None:
-        stream.state.update(stream.seq, camera, estimate, full=regions is None)
-    timing.update(pose=pose_ms, total=(time.perf_counter() - start) * 1e3)
-    return FrameResult(
-        targets=[t.to_dict() for t in detection.targets],
-        pose=estimate.to_dict() if estimate is not None else None,
-        pose_error=pose_error,
-        timing_ms={k: round(v, 3) for k, v in timing.items()},
-        width=gray.shape[1],
-        height=gray.shape[0],
-        scan="full" if regions is None else "regions",
-        scan_reason=reason,
-    )
+    def __init__(self, *, detectors: DetectorCache, sessions: sessionmaker[Session], settings: Settings) -> None:
+        self.detectors = detectors
+        self.sessions = sessions
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._contexts: dict[int, TrackingContext] = {}
+
+    def context(self, environment_id: int) -> TrackingContext:
+        """The environment's tracking context: NotFound without the environment, Invalid
+        when it has no map yet."""
+        with self.sessions() as session:
+            environment = environments.get_row(session, environment_id)
+            stored = environments.stored_map(session, environment_id)
+            if stored is None:
+                raise Invalid(f"environment {environment_id} has no map yet: run a survey or PUT a map first")
+            version = f"{stored.id}:{stored.updated_at.isoformat()}"
+            detector_key = (classifiers.for_environment(session, environment), environment.marker_family)
+            with self._lock:
+                cached = self._contexts.get(environment_id)
+            if cached is not None and cached.map_version == version and cached.detector_key == detector_key:
+                return cached
+            document = MapDocument.model_validate(stored.document)
+            context = TrackingContext(
+                environment_id=environment_id,
+                map_version=version,
+                camera=Camera.from_dict(document.camera.model_dump()),
+                camera_model=document.camera,
+                discs={t.id: np.asarray(t.discs, np.float64) for t in document.targets},
+                detector_key=detector_key,
+            )
+            self.detectors.get(session, *detector_key)  # load once, now
+        _ = context.targets  # stacked for region prediction once, now
+        with self._lock:
+            self._contexts[environment_id] = context
+        return context
+
+    def locate(self, environment_id: int, data: bytes, config: TrackConfig) -> LocateResponse:
+        """Detections and the camera pose in one client image (no history: the whole
+        frame is scanned)."""
+        result = self.locate_frame(self.context(environment_id), data, config)
+        return LocateResponse(width=result.width, height=result.height, targets=result.targets, pose=result.pose,
+                              pose_error=result.pose_error, timing_ms=result.timing_ms)
+
+    def locate_frame(self, context: TrackingContext, data: bytes, config: TrackConfig | StreamFrame) -> FrameResult:
+        """Decode, detect, and estimate the pose of one frame (runs in a worker thread).
+
+        `config`: a TrackConfig for a lone image (whole-frame scan), or a `StreamFrame` for
+        a /track frame (regions predicted from the connection's previous poses)."""
+        stream = config if isinstance(config, StreamFrame) else None
+        if stream is not None:
+            config = stream.config
+        assert isinstance(config, TrackConfig)
+        start = time.perf_counter()
+        gray = images.decode(data, self.settings)
+        decoded = time.perf_counter()
+        detector = self.detectors.get_loaded(context.detector_key)
+        if detector is None:
+            with self.sessions() as session:
+                detector = self.detectors.get(session, *context.detector_key)
+        camera = context.camera
+        if config.intrinsics is not None:
+            camera = Camera.from_dict(config.intrinsics.model_dump())
+        if (gray.shape[1], gray.shape[0]) != (camera.width, camera.height):
+            camera = camera.scaled_to(gray.shape[1], gray.shape[0])
+        regions, reason = (None, "single") if stream is None else stream.state.plan(
+            stream.seq, camera, config, context.targets)
+        planned = time.perf_counter()
+        detection, estimate, pose_error, pose_ms = _detect_and_pose(detector, gray, regions, context, camera, config)
+        timing = {"decode": (decoded - start) * 1e3, "plan": (planned - decoded) * 1e3, **detection.timing_ms}
+        if estimate is None and regions is not None:
+            # Lost in the regions (fast motion, a wrong prior): the whole frame, now.
+            reason, regions = "fallback", None
+            detection, estimate, pose_error, more_ms = _detect_and_pose(detector, gray, None, context, camera, config)
+            pose_ms += more_ms
+            for key, value in detection.timing_ms.items():
+                timing[key] = timing.get(key, 0.0) + value
+        if stream is not None:
+            stream.state.update(stream.seq, camera, estimate, full=regions is None)
+        timing.update(pose=pose_ms, total=(time.perf_counter() - start) * 1e3)
+        return FrameResult(
+            targets=[DetectedTargetOut(**t.to_dict()) for t in detection.targets],
+            pose=PoseOut(**estimate.to_dict()) if estimate is not None else None,
+            pose_error=pose_error,
+            timing_ms={k: round(v, 3) for k, v in timing.items()},
+            width=gray.shape[1],
+            height=gray.shape[0],
+            scan="full" if regions is None else "regions",
+            scan_reason=reason,  # type: ignore[arg-type]
+        )
 
 
 def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region] | None, context: TrackingContext,

@@ -3,8 +3,6 @@ database, a training job end to end, and an environment choosing its classifier.
 
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 from fastapi.testclient import TestClient
@@ -14,6 +12,7 @@ from app.core.detection.candidates import load_default_classifier
 from app.main import create_app
 from app.services import classifiers
 from app.settings import Settings
+from tests.conftest import wait_for_job
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -45,10 +44,7 @@ def test_training_job_end_to_end_and_environment_uses_it(client: TestClient) -> 
     assert reply.status_code == 202, reply.text
     job = reply.json()
     assert reply.headers["location"] == f"/jobs/{job['id']}" and job["kind"] == "train_classifier"
-    deadline = time.monotonic() + 300
-    while (body := client.get(f"/jobs/{job['id']}").json())["status"] in ("queued", "running"):
-        assert time.monotonic() < deadline, body
-        time.sleep(0.3)
+    body = wait_for_job(client, job["id"], timeout=300)
     assert body["status"] == "succeeded", body
     new_id = body["result"]["classifier_id"]
     trained = client.get(f"/classifiers/{new_id}").json()
@@ -84,9 +80,6 @@ def test_training_on_images_without_targets_fails_with_a_clear_message(client: T
                         data={"name": "nothing"})
     assert reply.status_code == 202
     job_id = reply.json()["id"]
-    deadline = time.monotonic() + 120
-    while (body := client.get(f"/jobs/{job_id}").json())["status"] in ("queued", "running"):
-        assert time.monotonic() < deadline, body
-        time.sleep(0.2)
+    body = wait_for_job(client, job_id, timeout=120)
     assert body["status"] == "failed" and "no target" in body["error"]
     assert [c["source"] for c in client.get("/classifiers").json()] == ["builtin"]

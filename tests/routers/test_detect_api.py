@@ -13,8 +13,12 @@ from app.sim import scenes
 from app.settings import Settings
 
 
+#: A rendered frame and what it shows.
+Frame = tuple[np.ndarray, scenes.FrameTruth]
+
+
 @pytest.fixture(scope="module")
-def frame() -> tuple[np.ndarray, scenes.FrameTruth]:
+def frame() -> Frame:
     return scenes.scenario_frame("clean", np.random.default_rng(11))
 
 
@@ -35,7 +39,7 @@ def _check_found(body: dict, truth: scenes.FrameTruth) -> None:
 
 
 @pytest.mark.parametrize("ext,content_type", [(".png", "image/png"), (".jpg", "image/jpeg")])
-def test_detect_png_and_jpeg_bodies(client: TestClient, frame, ext: str, content_type: str) -> None:  # type: ignore[no-untyped-def]
+def test_detect_png_and_jpeg_bodies(client: TestClient, frame: Frame, ext: str, content_type: str) -> None:
     image, truth = frame
     reply = client.post("/detect", content=_encode(image, ext), headers={"content-type": content_type})
     assert reply.status_code == 200, reply.text
@@ -45,7 +49,7 @@ def test_detect_png_and_jpeg_bodies(client: TestClient, frame, ext: str, content
     _check_found(body, truth)
 
 
-def test_detect_multipart_with_candidates(client: TestClient, frame) -> None:  # type: ignore[no-untyped-def]
+def test_detect_multipart_with_candidates(client: TestClient, frame: Frame) -> None:
     image, truth = frame
     reply = client.post("/detect?candidates=true", files={"image": ("f.png", _encode(image, ".png"), "image/png")})
     assert reply.status_code == 200, reply.text
@@ -59,7 +63,7 @@ def test_detect_multipart_with_candidates(client: TestClient, frame) -> None:  #
             assert np.hypot(candidates[:, 0] - u, candidates[:, 1] - v).min() < 2.0
 
 
-def test_detect_accepts_grey_alpha_and_16_bit(client: TestClient, frame) -> None:  # type: ignore[no-untyped-def]
+def test_detect_accepts_grey_alpha_and_16_bit(client: TestClient, frame: Frame) -> None:
     image, truth = frame
     for variant in (cv2.cvtColor(image, cv2.COLOR_GRAY2BGRA), image.astype(np.uint16) * 257):
         reply = client.post("/detect", content=_encode(variant, ".png"), headers={"content-type": "image/png"})
@@ -82,7 +86,7 @@ def test_bad_images_get_a_clear_4xx(client: TestClient, body: bytes, status: int
     assert reply.json()["detail"]
 
 
-def test_truncated_jpeg_is_422(client: TestClient, frame) -> None:  # type: ignore[no-untyped-def]
+def test_truncated_jpeg_is_422(client: TestClient, frame: Frame) -> None:
     data = _encode(frame[0], ".jpg")
     reply = client.post("/detect", content=data[: len(data) // 2], headers={"content-type": "image/jpeg"})
     assert reply.status_code == 422 and "truncated" in reply.json()["detail"]
@@ -103,7 +107,7 @@ def test_multipart_without_image_field_is_422(client: TestClient) -> None:
     assert reply.status_code == 422 and "image" in reply.json()["detail"]
 
 
-def test_unknown_classifier_404_and_family_422(client: TestClient, frame) -> None:  # type: ignore[no-untyped-def]
+def test_unknown_classifier_404_and_family_422(client: TestClient, frame: Frame) -> None:
     data = _encode(frame[0], ".png")
     reply = client.post("/detect?classifier_id=999", content=data, headers={"content-type": "image/png"})
     assert reply.status_code == 404

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-
 import json
+from collections.abc import Callable
 
 import pytest
 from sqlalchemy import text
@@ -91,7 +91,7 @@ def test_map_import_and_export(client: TestClient) -> None:
 def _broken_maps() -> list[tuple[str, dict]]:
     cases: list[tuple[str, dict]] = []
 
-    def case(name: str, mutate) -> None:  # type: ignore[no-untyped-def]
+    def case(name: str, mutate: Callable[[dict], object]) -> None:
         document = example_map(2)
         mutate(document)
         cases.append((name, document))

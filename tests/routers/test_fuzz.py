@@ -281,7 +281,7 @@ def test_detect_raw_body(fuzz: Fuzz, seeds: dict[str, bytes]) -> None:
 @pytest.mark.parametrize("name", ["png chunk length 0xFFFFFFFF", "jpeg 2000 scans 4000x4000"])
 def test_cheap_files_that_are_expensive_to_decode_are_refused_fast(fuzz: Fuzz, seeds: dict[str, bytes],
                                                                   name: str) -> None:
-    """A few kB that used to cost the decoder 10-20 s of CPU each (one request per
+    """A few kB that a decoder would spend 10-20 s of CPU on each (one request per
     client thread would stall the service) are refused from their structure alone."""
     import time
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from fastapi.testclient import TestClient
 
+from app.settings import Settings
+
 
 def test_livez_and_readyz(client: TestClient) -> None:
     assert client.get("/livez").json() == {"status": "ok"}
@@ -28,7 +30,7 @@ def test_docs_and_openapi(client: TestClient) -> None:
         assert path in paths
 
 
-def test_server_limits_the_threads_of_one_frame(settings) -> None:  # type: ignore[no-untyped-def]
+def test_server_limits_the_threads_of_one_frame(settings: Settings) -> None:
     """Frames of different clients run in parallel: inside one frame OpenCV and BLAS
     get `compute_threads`, so their idle pool threads do not spin on the other cores."""
     import cv2

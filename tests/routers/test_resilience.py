@@ -5,14 +5,9 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,40 +21,10 @@ from app.core.geometry.camera import Camera, Pose
 from app.sim.scenes import Scene, camera_walk, render_walk, room_scene
 from app.main import create_app
 from app.schemas import MapDocument
+from app.services import jobs
 from app.settings import Settings
-from tests.conftest import example_map
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _start(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port)}
-    with log.open("ab") as out:
-        process = subprocess.Popen([str(Path(sys.executable).parent / "fidotrack"), "serve"], env=env,
-                                   stdout=out, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return process
-        except httpx.TransportError:
-            pass
-        assert process.poll() is None, log.read_text()
-        assert time.monotonic() < deadline, "server did not become ready"
-        time.sleep(0.2)
-
-
-def _finished(fetch: Callable[[], dict], timeout: float = 240.0) -> dict:
-    """The job (as `fetch` returns it) once it has left queued/running."""
-    deadline = time.monotonic() + timeout
-    while (state := fetch())["status"] in ("queued", "running"):
-        assert time.monotonic() < deadline, state
-        time.sleep(0.3)
-    return state
+from tests.conftest import FINISHED, example_map, free_port, start_server, wait_for_job
+from tests.services.job_handlers import CountParams
 
 
 @dataclass
@@ -87,41 +52,38 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Room:
 
 
 def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room: Room) -> None:
-    room_video = room.video
-    data, port, log = tmp_path / "data", _free_port(), tmp_path / "server.log"
-    base = f"http://127.0.0.1:{port}"
-    server = _start(data, port, log)
+    data, port, log = tmp_path / "data", free_port(), tmp_path / "server.log"
+    server = start_server(data, log, port=port)
+    api = httpx.Client(base_url=server.url)
     try:
-        env = httpx.post(f"{base}/environments", json={"name": "room", "marker_size_m": 0.25}).json()["id"]
-        httpx.put(f"{base}/environments/{env}/map", json=example_map(2)).raise_for_status()
-        job = httpx.post(f"{base}/environments/{env}/survey", files={"video": ("v.avi", room_video, "video/avi")},
-                         timeout=60).json()
-        deadline = time.monotonic() + 60
-        while (state := httpx.get(f"{base}/jobs/{job['id']}").json())["progress"] <= 0.05:
-            assert state["status"] in ("queued", "running") and time.monotonic() < deadline, state
-            time.sleep(0.05)
-        assert state["status"] == "running"
+        env = api.post("/environments", json={"name": "room", "marker_size_m": 0.25}).json()["id"]
+        api.put(f"/environments/{env}/map", json=example_map(2)).raise_for_status()
+        job = api.post(f"/environments/{env}/survey", files={"video": ("v.avi", room.video, "video/avi")},
+                       timeout=60).json()
+        state = wait_for_job(api, job["id"], lambda state: state["progress"] > 0.05 or state["status"] in FINISHED,
+                             timeout=60, poll=0.05)
+        assert state["status"] == "running", state
         assert any((data / "uploads").iterdir())
-        server.send_signal(signal.SIGKILL)  # no shutdown hook runs
-        server.wait(10)
+        server.process.send_signal(signal.SIGKILL)  # no shutdown hook runs
+        server.process.wait(10)
         time.sleep(3.0)  # the orphaned worker notices at its next progress report and stops
-        server = _start(data, port, log)
-        failed = httpx.get(f"{base}/jobs/{job['id']}").json()
+        server = start_server(data, log, port=port)
+        failed = api.get(f"/jobs/{job['id']}").json()
         assert failed["status"] == "failed" and failed["stage"] == "interrupted", failed
-        assert httpx.get(f"{base}/environments/{env}/map").json() == example_map(2)
+        assert api.get(f"/environments/{env}/map").json() == example_map(2)
         assert not any((data / "uploads").iterdir())
         time.sleep(2.0)  # and nothing writes behind the new server's back
-        assert httpx.get(f"{base}/jobs/{job['id']}").json()["status"] == "failed"
-        assert httpx.get(f"{base}/environments/{env}/map").json() == example_map(2)
+        assert api.get(f"/jobs/{job['id']}").json()["status"] == "failed"
+        assert api.get(f"/environments/{env}/map").json() == example_map(2)
         # The restarted server surveys normally.
-        again = httpx.post(f"{base}/environments/{env}/survey", files={"video": ("v.avi", room_video, "video/avi")},
-                           timeout=60).json()
-        state = _finished(lambda: httpx.get(f"{base}/jobs/{again['id']}").json())
+        again = api.post(f"/environments/{env}/survey", files={"video": ("v.avi", room.video, "video/avi")},
+                         timeout=60).json()
+        state = wait_for_job(api, again["id"])
         assert state["status"] == "succeeded", state
-        assert httpx.get(f"{base}/environments/{env}/map").json()["survey_job_id"] == again["id"]
+        assert api.get(f"/environments/{env}/map").json()["survey_job_id"] == again["id"]
     finally:
-        server.terminate()
-        server.wait(30)
+        server.stop()
+        api.close()
     lines = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
     assert any(line.get("job_id") == again["id"] and line["msg"] == "job succeeded" for line in lines)
     assert any("request_id" in line and line["msg"] == "request" for line in lines)
@@ -154,10 +116,8 @@ def test_body_limits_refuse_before_reading(tmp_path: Path) -> None:
 def test_job_queue_limit_is_429_and_stores_nothing(tmp_path: Path) -> None:
     settings = Settings(data_dir=tmp_path / "data", max_queued_jobs=1)
     with TestClient(create_app(settings)) as client:
-        from app.services import jobs
-
         with client.app.state.sessionmaker() as session:  # a job that occupies the queue
-            jobs.create(session, "survey", {"upload_dir": "none"})
+            jobs.create(session, "count", CountParams())
         image = client.get("/markers/3.png?px=200").content
         reply = client.post("/classifiers", files=[("images", ("a.png", image, "image/png"))], data={"name": "x"})
         assert reply.status_code == 429 and "try again" in reply.json()["detail"]
@@ -213,7 +173,7 @@ def test_survey_and_several_tracking_clients_at_once_lose_nothing(client: TestCl
         errors = [np.linalg.norm(np.asarray(r["pose"]["position"]) - room.poses[r["seq"]].position)
                   for r in replies if r["pose"] is not None]
         assert len(errors) >= len(room.frames) // 2 and np.median(errors) < 0.02
-    state = _finished(lambda: client.get(f"/jobs/{job['id']}").json())
+    state = wait_for_job(client, job["id"])
     assert state["status"] == "succeeded", state
     assert client.get(f"/environments/{surveyed}/map").json()["survey_job_id"] == job["id"]
     assert client.get(f"/environments/{tracked}/map").json() == MapDocument.model_validate(true_map).model_dump(

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from app.core.geometry.alignment import similarity_from_points
 from app.core.geometry.camera import Camera
 from app.sim.scenes import Scene, camera_walk, render_walk, room_scene
-from tests.conftest import example_map
+from tests.conftest import example_map, wait_for_job
 
 ROOM = (5.0, 4.0, 2.6)
 MARKER_M = 0.25
@@ -37,14 +37,6 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scene, Camera, bytes
     return scene, camera, path.read_bytes()
 
 
-def _wait(client: TestClient, job_id: str, timeout: float = 240.0) -> dict:
-    deadline = time.monotonic() + timeout
-    while (body := client.get(f"/jobs/{job_id}").json())["status"] in ("queued", "running"):
-        assert time.monotonic() < deadline, body
-        time.sleep(0.25)
-    return body
-
-
 def _environment(client: TestClient) -> int:
     return client.post("/environments", json={"name": "room", "marker_size_m": MARKER_M}).json()["id"]
 
@@ -60,7 +52,7 @@ def test_survey_of_a_rendered_room_gives_its_camera_and_discs(client: TestClient
     assert reply.status_code == 202, reply.text
     job = reply.json()
     assert reply.headers["location"] == f"/jobs/{job['id']}" and job["kind"] == "survey"
-    body = _wait(client, job["id"])
+    body = wait_for_job(client, job["id"])
     assert body["status"] == "succeeded", body
     result = body["result"]
     assert result["n_registered"] >= 50 and result["rms_px"] < 0.5
@@ -127,7 +119,7 @@ def test_video_without_markers_fails_and_keeps_the_old_map(client: TestClient, t
     writer.release()
     reply = client.post(f"/environments/{env}/survey", files={"video": ("plain.avi", path.read_bytes(), "video/avi")})
     assert reply.status_code == 202, reply.text
-    body = _wait(client, reply.json()["id"])
+    body = wait_for_job(client, reply.json()["id"])
     assert body["status"] == "failed" and "no target" in body["error"]
     assert client.get(f"/environments/{env}/map").json() == example_map(2)
 
@@ -137,10 +129,7 @@ def test_cancelled_survey_keeps_the_old_map(client: TestClient, room) -> None:
     env = _environment(client)
     client.put(f"/environments/{env}/map", json=example_map(2))
     job = _post_video(client, env, video).json()
-    deadline = time.monotonic() + 60
-    while client.get(f"/jobs/{job['id']}").json()["status"] == "queued":
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
+    wait_for_job(client, job["id"], lambda state: state["status"] != "queued", timeout=60, poll=0.05)
     cancelled = client.delete(f"/jobs/{job['id']}").json()
     assert cancelled["status"] == "cancelled"  # the survey takes seconds; it was still running
     time.sleep(2.0)  # the worker notices at its next progress report and stops
@@ -189,7 +178,7 @@ def test_survey_from_a_set_of_images(client: TestClient, room, tmp_path: Path) -
     env = _environment(client)
     reply = client.post(f"/environments/{env}/survey", files=files)
     assert reply.status_code == 202, reply.text
-    body = _wait(client, reply.json()["id"])
+    body = wait_for_job(client, reply.json()["id"])
     assert body["status"] == "succeeded", body
     assert body["result"]["frames_used"] == 45 and body["result"]["n_registered"] >= 30
     document = client.get(f"/environments/{env}/map").json()

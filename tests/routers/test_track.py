@@ -8,14 +8,21 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketTestSession
 from starlette.websockets import WebSocketDisconnect
 
-from app.sim import degrade, scenes
 from app.core.geometry.camera import Camera, Pose
+from app.sim import degrade, scenes
+
+
+#: A scene of three cards, its camera, three poses and their frames (JPEG).
+World = tuple[scenes.Scene, Camera, list[Pose], list[bytes]]
+#: A room, its camera, a pan's poses, their frames (JPEG) and the cards each frame shows.
+Pan = tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]]
 
 
 @pytest.fixture(scope="module")
-def world() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes]]:
+def world() -> World:
     rng = np.random.default_rng(21)
     camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
     scene = scenes.single_frame_scene(rng, camera, n_targets=3, distance_m=(1.2, 2.0), tilt_deg=(0, 30))
@@ -28,14 +35,14 @@ def world() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes]]:
 
 
 @pytest.fixture
-def environment(client: TestClient, world) -> int:  # type: ignore[no-untyped-def]
+def environment(client: TestClient, world: World) -> int:
     scene, camera, _, _ = world
     env = client.post("/environments", json={"name": "bench", "marker_size_m": 0.2}).json()
     assert client.put(f"/environments/{env['id']}/map", json=scene.map_document(camera)).status_code == 200
     return int(env["id"])
 
 
-def test_hello_frames_and_poses_in_order(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_hello_frames_and_poses_in_order(client: TestClient, world: World, environment: int) -> None:
     _, _, poses, frames = world
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
         hello = ws.receive_json()
@@ -51,7 +58,7 @@ def test_hello_frames_and_poses_in_order(client: TestClient, world, environment:
             assert set(reply["timing_ms"]) >= {"decode", "detect", "pose", "total"}
 
 
-def test_config_and_bad_messages(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_config_and_bad_messages(client: TestClient, world: World, environment: int) -> None:
     _, _, poses, frames = world
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
         ws.receive_json()
@@ -73,7 +80,7 @@ def test_config_and_bad_messages(client: TestClient, world, environment: int) ->
         assert np.linalg.norm(np.array(reply["pose"]["position"]) - poses[1].position) < 0.05
 
 
-def test_focal_estimation_on_request(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_focal_estimation_on_request(client: TestClient, world: World, environment: int) -> None:
     _, _, _, frames = world
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
         ws.receive_json()
@@ -101,7 +108,7 @@ def test_environment_without_map_is_refused(client: TestClient) -> None:
         assert message["code"] == "no_map" and "no map" in message["message"]
 
 
-def test_flooding_client_loses_old_frames_never_the_newest(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_flooding_client_loses_old_frames_never_the_newest(client: TestClient, world: World, environment: int) -> None:
     _, _, _, frames = world
     sent = 40
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
@@ -123,7 +130,7 @@ def test_flooding_client_loses_old_frames_never_the_newest(client: TestClient, w
         assert other.receive_json()["pose"] is not None
 
 
-def test_garbage_from_one_client_does_not_disturb_another(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_garbage_from_one_client_does_not_disturb_another(client: TestClient, world: World, environment: int) -> None:
     _, _, _, frames = world
     with client.websocket_connect(f"/track?environment_id={environment}") as good, \
          client.websocket_connect(f"/track?environment_id={environment}") as bad:
@@ -136,7 +143,7 @@ def test_garbage_from_one_client_does_not_disturb_another(client: TestClient, wo
             assert good.receive_json()["pose"] is not None
 
 
-def test_locate_one_image(client: TestClient, world, environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_locate_one_image(client: TestClient, world: World, environment: int) -> None:
     _, _, poses, frames = world
     reply = client.post(f"/environments/{environment}/locate", content=frames[0],
                         headers={"content-type": "image/jpeg"})
@@ -156,7 +163,7 @@ def test_locate_one_image(client: TestClient, world, environment: int) -> None: 
 
 
 @pytest.fixture(scope="module")
-def pan() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]]:
+def pan() -> Pan:
     """A camera turning 1.5 degrees a frame in a room: cards enter the view on the way."""
     rng = np.random.default_rng(1)
     camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
@@ -175,14 +182,14 @@ def pan() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]
 
 
 @pytest.fixture
-def pan_environment(client: TestClient, pan) -> int:  # type: ignore[no-untyped-def]
+def pan_environment(client: TestClient, pan: Pan) -> int:
     scene, camera, _, _, _ = pan
     env = client.post("/environments", json={"name": "pan", "marker_size_m": 0.2}).json()
     assert client.put(f"/environments/{env['id']}/map", json=scene.map_document(camera)).status_code == 200
     return int(env["id"])
 
 
-def _stream(ws, frames: list[bytes], config: dict | None = None) -> list[dict]:  # type: ignore[no-untyped-def]
+def _stream(ws: WebSocketTestSession, frames: list[bytes], config: dict | None = None) -> list[dict]:
     assert ws.receive_json()["type"] == "hello"
     if config is not None:
         ws.send_text(json.dumps({"type": "config", **config}))
@@ -195,7 +202,7 @@ def _stream(ws, frames: list[bytes], config: dict | None = None) -> list[dict]: 
     return replies
 
 
-def test_regions_give_the_poses_of_full_scans(client: TestClient, pan, pan_environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_regions_give_the_poses_of_full_scans(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, _, poses, frames, visible = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:
@@ -223,7 +230,7 @@ def test_regions_give_the_poses_of_full_scans(client: TestClient, pan, pan_envir
         assert any(card in {t["id"] for t in r["targets"]} for r in on[first:first + 2]), card
 
 
-def test_full_scans_first_periodically_and_after_losing_track(client: TestClient, pan, pan_environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_full_scans_first_periodically_and_after_losing_track(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, _, _, frames, _ = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:
@@ -245,7 +252,7 @@ def test_full_scans_first_periodically_and_after_losing_track(client: TestClient
     assert replies[4]["pose"] is None and all(r["pose"] is not None for i, r in enumerate(replies) if i != 4)
 
 
-def test_new_intrinsics_mean_a_full_scan(client: TestClient, pan, pan_environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_new_intrinsics_mean_a_full_scan(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, camera, _, frames, _ = pan
     intrinsics = {**camera.to_dict(), "K": (camera.K * [[1.01], [1.01], [1]]).tolist()}
     with client.websocket_connect(f"/track?environment_id={pan_environment}") as ws:
@@ -259,7 +266,7 @@ def test_new_intrinsics_mean_a_full_scan(client: TestClient, pan, pan_environmen
     assert replies[4]["scan_reason"] in ("regions", "wide")
 
 
-def test_tracking_state_is_per_connection(client: TestClient, pan, pan_environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_tracking_state_is_per_connection(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, _, _, frames, _ = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as a, client.websocket_connect(url) as b:
@@ -279,7 +286,7 @@ def test_tracking_state_is_per_connection(client: TestClient, pan, pan_environme
         assert _stream(c, frames[5:6])[0]["scan_reason"] == "first"
 
 
-def test_locate_scans_the_whole_frame(client: TestClient, pan, pan_environment: int) -> None:  # type: ignore[no-untyped-def]
+def test_locate_scans_the_whole_frame(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, _, poses, frames, _ = pan
     for _ in range(2):  # no history between calls
         body = client.post(f"/environments/{pan_environment}/locate", content=frames[3],
@@ -303,7 +310,8 @@ def test_track_state_reasons_without_a_server() -> None:
     from types import SimpleNamespace
 
     from app.core.geometry.regions import MapTargets
-    from app.services.tracking import TrackConfig, TrackState
+    from app.schemas import TrackConfig
+    from app.services.tracking import TrackState
 
     camera = Camera.pinhole(820.0, 640, 480)
     uv = np.array([[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]]) - 0.5

@@ -20,10 +20,12 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.sim import degrade, scenes
 from app.core.geometry.camera import Camera, Pose
 from app.main import create_app
+from app.schemas import TrackConfig
+from app.services.tracking import FrameResult, StreamFrame, TrackingContext
 from app.settings import Settings
+from app.sim import degrade, scenes
 
 MAX_FRAME_BYTES = 256 * 1024
 
@@ -41,8 +43,12 @@ def receive(ws: Any, timeout: float = 20.0) -> dict[str, Any]:
     return json.loads(message["text"])
 
 
+#: A scene of three cards, its camera and three frames of it (JPEG).
+World = tuple[scenes.Scene, Camera, list[bytes]]
+
+
 @pytest.fixture(scope="module")
-def world() -> tuple[scenes.Scene, Camera, list[bytes]]:
+def world() -> World:
     rng = np.random.default_rng(21)
     camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
     scene = scenes.single_frame_scene(rng, camera, n_targets=3, distance_m=(1.2, 2.0), tilt_deg=(0, 30))
@@ -55,7 +61,7 @@ def world() -> tuple[scenes.Scene, Camera, list[bytes]]:
     return scene, camera, frames
 
 
-def _app_client(tmp_path: Path, world: Any, **limits: Any) -> Iterator[tuple[TestClient, int]]:
+def _app_client(tmp_path: Path, world: World, **limits: Any) -> Iterator[tuple[TestClient, int]]:
     scene, camera, _ = world
     settings = Settings(data_dir=tmp_path / "data", max_frame_bytes=MAX_FRAME_BYTES, **limits)
     with TestClient(create_app(settings)) as client:
@@ -65,7 +71,7 @@ def _app_client(tmp_path: Path, world: Any, **limits: Any) -> Iterator[tuple[Tes
 
 
 @pytest.fixture
-def served(tmp_path: Path, world: Any) -> Iterator[tuple[TestClient, int]]:
+def served(tmp_path: Path, world: World) -> Iterator[tuple[TestClient, int]]:
     yield from _app_client(tmp_path, world)
 
 
@@ -117,7 +123,7 @@ def _garbage(frames: list[bytes]) -> list[tuple[str, str | bytes, str]]:
 
 
 def test_garbage_gets_errors_while_another_client_keeps_tracking(
-    served: tuple[TestClient, int], world, caplog: pytest.LogCaptureFixture  # type: ignore[no-untyped-def]
+    served: tuple[TestClient, int], world: World, caplog: pytest.LogCaptureFixture
 ) -> None:
     import logging
 
@@ -194,18 +200,17 @@ def test_a_valid_png_frame_is_accepted(served: tuple[TestClient, int]) -> None:
 
 
 def test_a_server_bug_on_one_frame_is_an_error_message_not_a_dead_connection(
-    served: tuple[TestClient, int], world, monkeypatch: pytest.MonkeyPatch  # type: ignore[no-untyped-def]
+    served: tuple[TestClient, int], world: World, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from app.services import tracking
-
     client, environment = served
     _, _, frames = world
+    tracking = client.app.state.tracking
     real = tracking.locate_frame
 
-    def flaky(context, detectors, sessions, settings, data, config):  # type: ignore[no-untyped-def]
+    def flaky(context: TrackingContext, data: bytes, config: TrackConfig | StreamFrame) -> FrameResult:
         if data == b"boom" * 10:
             raise ZeroDivisionError("a bug")
-        return real(context, detectors, sessions, settings, data, config)
+        return real(context, data, config)
 
     monkeypatch.setattr(tracking, "locate_frame", flaky)
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
@@ -250,7 +255,7 @@ def test_environment_without_map_is_refused_with_1008(served: tuple[TestClient, 
 # --- limits -------------------------------------------------------------------------------
 
 
-def test_rate_limit_lock_step(tmp_path: Path, world) -> None:  # type: ignore[no-untyped-def]
+def test_rate_limit_lock_step(tmp_path: Path, world: World) -> None:
     """A client that waits for each reply but sends faster than max_track_fps: every frame
     is processed (nothing newer replaces it), at the limited rate, with at most one
     rate_limited message a second."""
@@ -280,7 +285,7 @@ def test_rate_limit_lock_step(tmp_path: Path, world) -> None:  # type: ignore[no
     assert all(b - a >= 0.95 for a, b in zip(notices, notices[1:]))
 
 
-def test_rate_limit_flood_drops_old_frames_never_the_newest(tmp_path: Path, world) -> None:  # type: ignore[no-untyped-def]
+def test_rate_limit_flood_drops_old_frames_never_the_newest(tmp_path: Path, world: World) -> None:
     fps, sent = 5.0, 60
     small = _png(np.full((64, 64), 200, np.uint8))  # fast to process: the rate, not the CPU, limits
     for client, environment in _app_client(tmp_path, world, max_track_fps=fps):
@@ -310,7 +315,7 @@ def test_rate_limit_flood_drops_old_frames_never_the_newest(tmp_path: Path, worl
     assert seqs == sorted(seqs) and seqs[-1] == sent - 1
 
 
-def test_connection_limit_refuses_with_1013_and_frees_slots(tmp_path: Path, world) -> None:  # type: ignore[no-untyped-def]
+def test_connection_limit_refuses_with_1013_and_frees_slots(tmp_path: Path, world: World) -> None:
     _, _, frames = world
     for client, environment in _app_client(tmp_path, world, max_track_connections=2):
         url = f"/track?environment_id={environment}"

@@ -7,38 +7,25 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import BaseModel
 
 from app.main import create_app
+from app.schemas import JobStatus
 from app.services import jobs
+from app.services.jobs import JobKind
 from app.settings import Settings
+from tests.conftest import wait_for_job
+from tests.services.job_handlers import CountParams, NoParams
 
 
-@pytest.fixture(autouse=True)
-def _test_handlers(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(jobs.HANDLERS, "count", "tests.job_handlers:count")
-    monkeypatch.setitem(jobs.HANDLERS, "fail", "tests.job_handlers:fail")
-
-
-def _submit(client: TestClient, kind: str, params: dict) -> str:
+def _submit(client: TestClient, kind: str, params: BaseModel) -> str:
     with client.app.state.sessionmaker() as session:
-        job = jobs.create(session, kind, params)
-    client.app.state.jobs.submit(job.id, kind)
-    return job.id
-
-
-def _wait(client: TestClient, job_id: str, statuses: set[str], timeout: float = 60) -> dict:
-    deadline = time.monotonic() + timeout
-    while True:
-        body = client.get(f"/jobs/{job_id}").json()
-        if body["status"] in statuses:
-            return body
-        assert time.monotonic() < deadline, body
-        time.sleep(0.1)
+        return client.app.state.jobs.submit(session, kind, params).id
 
 
 def test_job_runs_reports_progress_and_succeeds(client: TestClient) -> None:
-    job_id = _submit(client, "count", {"steps": 20, "sleep": 0.1})
-    running = _wait(client, job_id, {"running", "succeeded"})
+    job_id = _submit(client, "count", CountParams(steps=20, sleep=0.1))
+    running = wait_for_job(client, job_id, {"running", "succeeded"}, timeout=60, poll=0.1)
     assert running["kind"] == "count"
     seen_progress = set()
     while (body := client.get(f"/jobs/{job_id}").json())["status"] == "running":
@@ -51,13 +38,13 @@ def test_job_runs_reports_progress_and_succeeds(client: TestClient) -> None:
 
 
 def test_failed_job_says_why(client: TestClient) -> None:
-    body = _wait(client, _submit(client, "fail", {}), {"failed"})
+    body = wait_for_job(client, _submit(client, "fail", NoParams()), {"failed"}, timeout=60, poll=0.1)
     assert "no markers" in body["error"] and body["finished_at"]
 
 
 def test_cancel_stops_a_running_job(client: TestClient) -> None:
-    job_id = _submit(client, "count", {"steps": 400, "sleep": 0.05})
-    _wait(client, job_id, {"running"})
+    job_id = _submit(client, "count", CountParams(steps=400, sleep=0.05))
+    wait_for_job(client, job_id, {"running"}, timeout=60, poll=0.1)
     cancelled = client.delete(f"/jobs/{job_id}")
     assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
     time.sleep(1.0)
@@ -73,7 +60,19 @@ def test_unknown_job_is_404(client: TestClient) -> None:
 def test_jobs_interrupted_by_a_restart_are_failed_not_left_running(settings: Settings) -> None:
     with TestClient(create_app(settings)) as first:
         with first.app.state.sessionmaker() as session:
-            job = jobs.create(session, "count", {"steps": 1})  # queued, never dispatched
+            job = jobs.create(session, "count", CountParams(steps=1))  # queued, never dispatched
     with TestClient(create_app(Settings(data_dir=settings.data_dir))) as second:
         body = second.get(f"/jobs/{job.id}").json()
         assert body["status"] == "failed" and "server stopped" in body["error"]
+
+
+def test_only_registered_kinds_with_their_own_parameters_are_submitted(client: TestClient) -> None:
+    runner = client.app.state.jobs
+    with client.app.state.sessionmaker() as session:
+        with pytest.raises(ValueError, match="unknown job kind"):
+            runner.submit(session, "no such kind", NoParams())
+        with pytest.raises(TypeError, match="CountParams"):
+            runner.submit(session, "count", NoParams())
+    assert jobs.handler_for(JobKind.SURVEY).kind == "survey"
+    assert jobs.handler_for(JobKind.TRAIN_CLASSIFIER).kind == "train_classifier"
+    assert [s.value for s in JobStatus] == ["queued", "running", "succeeded", "failed", "cancelled"]

@@ -1,0 +1,35 @@
+"""Job handlers the tests drive the job runner with (they run in worker processes),
+registered as the service's own are."""
+
+from __future__ import annotations
+
+import time
+
+from pydantic import BaseModel
+
+from app.services.jobs import JobContext, JobResult, job_handler
+
+
+class CountParams(BaseModel):
+    steps: int = 5
+    sleep: float = 0.05
+
+
+class NoParams(BaseModel):
+    pass
+
+
+@job_handler("count", CountParams)
+def count(params: CountParams, context: JobContext) -> JobResult:
+    """Count to `steps`, reporting progress at each step."""
+    for step in range(params.steps):
+        context.progress("counting", step / params.steps)
+        time.sleep(params.sleep)
+    return {"counted": params.steps}
+
+
+@job_handler("fail", NoParams)
+def fail(params: NoParams, context: JobContext) -> JobResult:
+    """Fail half way, as a survey of a video without markers does."""
+    context.progress("failing", 0.5)
+    raise ValueError("the survey video holds no markers")
