@@ -1,6 +1,34 @@
 """The automatic survey (paper §3, §5.1): every disc's 3D position and the camera's
-intrinsics from a video of the room, by structure from motion over the cards."""
+intrinsics from a video of the room, by structure from motion over the cards.
 
-from app.core.survey.reconstruction import SurveyedTarget, SurveyError, SurveyResult, survey
+`survey` runs the stages in order over one `SurveyState` (`reconstruction`); each stage
+is a module of its own: `lens`, `seed`, `register`, `place`, `bundle`, `prune`, `scale`,
+`result`, with the re-bundle policy in `policy` (docs/survey.md).
+"""
 
-__all__ = ["SurveyError", "SurveyResult", "SurveyedTarget", "survey"]
+from app.core.survey.bundle import BundleInfo, bundle_adjust
+from app.core.survey.lens import focal_from_cards, lens_from_cards
+from app.core.survey.policy import ShouldBundle, ShouldFitLens
+from app.core.survey.reconstruction import survey
+from app.core.survey.result import SurveyedTarget, SurveyResult
+from app.core.survey.state import Progress, Reconstruction, SurveyError, SurveyStage, SurveyState
+from app.core.survey.tracks import DISC_ERROR_PX, disc_precision
+
+__all__ = [
+    "DISC_ERROR_PX",
+    "BundleInfo",
+    "Progress",
+    "Reconstruction",
+    "ShouldBundle",
+    "ShouldFitLens",
+    "SurveyError",
+    "SurveyResult",
+    "SurveyStage",
+    "SurveyState",
+    "SurveyedTarget",
+    "bundle_adjust",
+    "disc_precision",
+    "focal_from_cards",
+    "lens_from_cards",
+    "survey",
+]

@@ -1,0 +1,272 @@
+"""The survey's result (survey step 6): the map with each disc's uncertainty, the camera,
+the trajectory, and warnings about weak parts of the map."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from app.core.geometry import Camera, Pose
+from app.core.survey.bundle import BundleInfo
+from app.core.survey.cards import max_angle_deg
+from app.core.survey.place import MIN_BASELINE_DEG
+from app.core.survey.scale import MetricScale
+from app.core.survey.state import SurveyError, SurveyState, Tracks, Views
+
+#: A target seen in fewer registered frames is flagged as weak.
+MIN_VIEWS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyedTarget:
+    """One target of the map: its 4 disc centres (metres, in the printed disc order of
+    docs/map-format.md)."""
+
+    id: int
+    discs: np.ndarray  # (4, 3)
+    std_m: np.ndarray  # (4,) RMS 3D position uncertainty of each disc (1 sigma)
+    n_views: int  # registered frames in which the target was used
+    baseline_deg: float  # widest angle between two of those views, at the target
+
+    def to_dict(self) -> dict[str, Any]:
+        """The target's entry in the map document.
+
+        Returns
+        -------
+        dict
+            ``id``, ``discs`` (rounded to the micrometre), ``std_m`` (3 significant
+            digits) and ``n_views``: plain JSON types.
+        """
+        return {
+            "id": int(self.id),
+            "discs": np.round(self.discs, 6).tolist(),
+            "std_m": [float(f"{s:.3g}") for s in self.std_m],
+            "n_views": int(self.n_views),
+        }
+
+
+@dataclass(eq=False)
+class SurveyResult:
+    """What a survey found: the camera, the map, the trajectory and how well they fit."""
+
+    camera: Camera
+    targets: list[SurveyedTarget]
+    rms_px: float  # reprojection RMS (2D) over every observation kept
+    trajectory: list[Pose | None]  # one per input frame; None: not used or not registered
+    warnings: list[str]
+    intrinsics_fixed: bool
+    frames_used: list[int]  # input frame indices after subsampling
+    n_observations: int  # disc observations in the final bundle adjustment
+    n_rejected_views: int  # (frame, target) views dropped as not fitting
+    scale_residual_m: float  # RMS of the card disc-distance residuals after scaling
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_registered(self) -> int:
+        """The number of frames registered."""
+        return sum(p is not None for p in self.trajectory)
+
+    def target(self, target_id: int) -> SurveyedTarget:
+        """The surveyed target of id ``target_id``.
+
+        Parameters
+        ----------
+        target_id : int
+            The printed id.
+
+        Returns
+        -------
+        SurveyedTarget
+            The target; KeyError when it was not surveyed.
+        """
+        for t in self.targets:
+            if t.id == target_id:
+                return t
+        raise KeyError(target_id)
+
+    def to_map_document(self, frame: str = "survey", survey_job_id: str | None = None) -> dict[str, Any]:
+        """The map document (docs/map-format.md).
+
+        Parameters
+        ----------
+        frame : str
+            The name of the map's frame.
+        survey_job_id : str, optional
+            The job that made the map.
+
+        Returns
+        -------
+        dict
+            ``frame``, ``units``, ``camera``, ``targets`` (by id), ``rms_px`` and
+            ``survey_job_id``: plain JSON types.
+        """
+        return {
+            "frame": frame,
+            "units": "m",
+            "camera": self.camera.to_dict(),
+            "targets": [t.to_dict() for t in sorted(self.targets, key=lambda t: t.id)],
+            "rms_px": float(round(self.rms_px, 4)),
+            "survey_job_id": survey_job_id,
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """A small JSON-able digest for a job result.
+
+        Returns
+        -------
+        dict
+            Frames, registered frames, targets, RMS, the lens, warnings and timing.
+        """
+        return {
+            "n_frames": len(self.frames_used),
+            "n_registered": self.n_registered,
+            "n_targets": len(self.targets),
+            "rms_px": float(self.rms_px),
+            "focal_px": self.camera.fx,
+            "principal_point": [self.camera.cx, self.camera.cy],
+            "dist": self.camera.dist.tolist(),
+            "warnings": list(self.warnings),
+            "timing_s": dict(self.timing_s),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyedViews:
+    """The views the final map rests on, and the targets it surveys."""
+
+    used: np.ndarray  # (V,) usable views of registered frames and placed targets
+    n_rejected: int  # views of registered frames and placed targets set aside as not fitting
+    n_views: np.ndarray  # (T,) used views of each target
+    targets: np.ndarray  # target indices surveyed: placed and seen in 2+ used views
+
+
+def surveyed_views(state: SurveyState) -> SurveyedViews:
+    """The views and targets of the final map.
+
+    Parameters
+    ----------
+    state : SurveyState
+        The survey after its last bundle adjustment.
+
+    Returns
+    -------
+    SurveyedViews
+        The used and rejected views, and the surveyed targets.
+
+    Raises
+    ------
+    SurveyError
+        When no target was seen in 2 or more registered frames.
+    """
+    rec, views, usable = state.reconstruction, state.views, state.usable
+    registered = rec.registered()
+    used = usable & registered[views.frame] & rec.placed()[views.target * 4]
+    n_rejected = int((~usable & registered[views.frame] & rec.placed()[views.target * 4]).sum())
+    n_views = np.bincount(views.target[used], minlength=state.tracks.n_targets)
+    targets = np.flatnonzero((n_views >= 2) & np.isfinite(rec.X[0::4, 0]))
+    if len(targets) == 0:
+        raise SurveyError("no target was seen in 2 or more registered frames")
+    return SurveyedViews(used, n_rejected, n_views, targets)
+
+
+def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews) -> list[str]:
+    """Warnings about weak parts of the map.
+
+    Parameters
+    ----------
+    results : list of SurveyedTarget
+        The surveyed targets.
+    tracks : Tracks
+        The observations.
+    views : Views
+        Every view.
+    surveyed : SurveyedViews
+        The views the map rests on.
+
+    Returns
+    -------
+    list of str
+        For the user: targets seen in fewer than ``MIN_VIEWS`` frames or over less than
+        ``MIN_BASELINE_DEG``, targets detected but not surveyed, and parts of the map
+        not seen together with the rest (only linked through camera motion).
+    """
+    out: list[str] = []
+    few = [r.id for r in results if r.n_views < MIN_VIEWS]
+    if few:
+        out.append(f"targets {few} were seen in fewer than {MIN_VIEWS} registered frames: their positions are weak")
+    narrow = [r.id for r in results if r.baseline_deg < MIN_BASELINE_DEG]
+    if narrow:
+        out.append(f"targets {narrow} were seen from too narrow a range of directions "
+                   f"(< {MIN_BASELINE_DEG:g} degrees): walk around them more")
+    missing = sorted(set(tracks.ids.tolist()) - {r.id for r in results})
+    if missing:
+        out.append(f"targets {missing} were detected but could not be surveyed (not seen together with the "
+                   "rest of the map from registered frames, or their views did not fit)")
+    # Co-visibility graph of the surveyed targets: an edge when two share a frame.
+    n = len(tracks.ids)
+    vf, vt = views.frame[surveyed.used], views.target[surveyed.used]
+    inc = sp.csr_matrix((np.ones(len(vf)), (vt, vf)), shape=(n, tracks.n_frames))
+    adj = (inc @ inc.T)[surveyed.targets][:, surveyed.targets]
+    n_comp, labels = connected_components(adj, directed=False)
+    if n_comp > 1:
+        sizes = np.bincount(labels)
+        main = int(np.argmax(sizes))
+        parts = [sorted(int(tracks.ids[surveyed.targets[i]]) for i in np.flatnonzero(labels == c))
+                 for c in range(n_comp) if c != main]
+        out.append(f"parts of the map are not seen together with the rest (only linked through camera motion): "
+                   f"{parts}; film them together with their neighbours")
+    return out
+
+
+def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews, scale: MetricScale,
+                  used_frames: list[int], n_input_frames: int) -> SurveyResult:
+    """The result of a survey: the scaled map, its uncertainty, the trajectory, warnings.
+
+    Parameters
+    ----------
+    state : SurveyState
+        The survey after scaling; its warnings get the map's (`map_warnings`).
+    info : BundleInfo
+        The last bundle adjustment, with its covariance.
+    surveyed : SurveyedViews
+        The views and targets of the map.
+    scale : MetricScale
+        The scale applied to the map after the bundle adjustment.
+    used_frames : list of int
+        The input frames the survey used.
+    n_input_frames : int
+        The number of frames of the input video.
+
+    Returns
+    -------
+    SurveyResult
+        The result.
+    """
+    rec, tracks, views = state.reconstruction, state.tracks, state.views
+    registered = rec.registered()
+    std = info.disc_std(len(rec.X)) * scale.factor
+    err = rec.errors(tracks, info.obs)
+    rms = float(np.sqrt(np.nanmean(err**2)))
+    results: list[SurveyedTarget] = []
+    for t in surveyed.targets:
+        frames_t = np.unique(views.frame[views.of_target[t][surveyed.used[views.of_target[t]]]])
+        centres = np.array([rec.pose(f).position for f in frames_t])
+        X = rec.discs(t)
+        angle = max_angle_deg(centres, X.mean(axis=0))
+        results.append(SurveyedTarget(int(tracks.ids[t]), X.copy(), std[4 * t : 4 * t + 4].copy(),
+                                      int(len(frames_t)), angle))
+    state.warnings += map_warnings(results, tracks, views, surveyed)
+    trajectory: list[Pose | None] = [None] * n_input_frames
+    for fi, index in enumerate(used_frames):
+        if registered[fi]:
+            trajectory[index] = rec.pose(fi)
+    return SurveyResult(
+        camera=rec.camera, targets=results, rms_px=rms, trajectory=trajectory, warnings=state.warnings,
+        intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
+        n_observations=int(len(info.obs)), n_rejected_views=surveyed.n_rejected,
+        scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s,
+    )

@@ -1,0 +1,110 @@
+"""Shared fixtures of the survey's tests: a small room with a calibration walk and its
+exact or noisy detections, the bench room's oblique views, and a survey state built on
+the truth (every frame registered at its true pose, every target placed at its true
+discs) for testing one stage at a time."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from app.core.detection import DetectedTarget
+from app.core.geometry import Camera
+from app.core.survey.state import StageClock, SurveySettings, SurveyState
+from app.core.survey.tracks import collect_tracks
+from app.sim.examples import BENCH_ROOM, ExampleRoom, RoomWalk
+from app.sim.scenes import Scene, TargetTruth, frame_truth
+
+#: A small room for the survey's tests: 4 x 3 x 2.5 m, 16 cards of 0.2 m, 640x480 at
+#: f 600 px with k1 -0.1; its walk is 80 frames from seed 7.
+SURVEY_ROOM = ExampleRoom(
+    "survey-test", (4.0, 3.0, 2.5), 16, 0.2,
+    Camera(np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]), np.array([-0.1, 0.0, 0.0, 0.0, 0.0]),
+           640, 480))
+
+Frames = list[list[DetectedTarget]]
+
+
+@pytest.fixture(scope="session")
+def room() -> ExampleRoom:
+    """The small test room (its camera, card size, walls)."""
+    return SURVEY_ROOM
+
+
+@pytest.fixture(scope="session")
+def room_walk() -> RoomWalk:
+    """The small room and its 80-frame calibration walk."""
+    return SURVEY_ROOM.walk(7, 80)
+
+
+@functools.cache
+def _synthetic_frames(sigma: float, seed: int) -> tuple[tuple[DetectedTarget, ...], ...]:
+    walk = SURVEY_ROOM.walk(7, 80)
+    rng = np.random.default_rng(seed)
+    frames = []
+    for pose in walk.poses:
+        truth = frame_truth(SURVEY_ROOM.camera, pose, walk.scene)
+        frames.append(tuple(DetectedTarget(t.id, t.discs_px + rng.normal(0, sigma, (4, 2)), 1.0)
+                            for t in truth.visible_targets()))
+    return tuple(frames)
+
+
+@pytest.fixture(scope="session")
+def synthetic_frames() -> Callable[[float, int], Frames]:
+    """Detections of the small room's walk: the projections of the true discs of every
+    visible target, plus Gaussian noise of ``sigma`` px drawn from ``seed`` (a fresh
+    list every call, to alter at will)."""
+
+    def frames(sigma: float, seed: int = 0) -> Frames:
+        return [list(f) for f in _synthetic_frames(sigma, seed)]
+
+    return frames
+
+
+def _in_image(t: TargetTruth) -> bool:
+    """Every disc projects into the image (2 px in) and the card faces the camera: the
+    visible cards, and also those outside the lens's field that the distortion polynomial
+    folds back into the image (target_truth calls them not visible). Kept on purpose where
+    the survey must not be misled by such detections."""
+    uv = t.discs_px
+    return bool(np.isfinite(uv).all() and ((uv >= 2) & (uv <= [637, 477])).all() and t.facing_cos > 0.05)
+
+
+@pytest.fixture(scope="session")
+def oblique_room() -> tuple[Scene, Frames]:
+    """The bench room's first 100 calibration frames (`BENCH_ROOM`, seed 0) with
+    ground-truth detections of every card facing the camera by more than 0.3 (up to 72
+    degrees off its normal), plus 0.03 px of Gaussian noise. As visible, the truth also
+    counts some projections of cards outside the field that the distortion polynomial
+    folds back into the image: the survey must not be misled by them."""
+    walk = BENCH_ROOM.walk(0, 300)
+    noise = np.random.default_rng(5)
+    frames = []
+    for pose in walk.poses[:100]:
+        truth = frame_truth(BENCH_ROOM.camera, pose, walk.scene)
+        frames.append([DetectedTarget(t.id, t.discs_px + noise.normal(0, 0.03, (4, 2)), 1.0)
+                       for t in truth.targets if _in_image(t) and t.facing_cos > 0.3])
+    return walk.scene, frames
+
+
+@pytest.fixture
+def true_state(room_walk: RoomWalk, synthetic_frames: Callable[[float, int], Frames]) -> SurveyState:
+    """A survey state on the small room's exact detections (no noise), the camera given,
+    every frame registered at its true pose and every target placed at its true discs:
+    the optimum. Tests take out or disturb what their stage is to find."""
+    frames = synthetic_frames(0.0, 0)
+    warnings: list[str] = []
+    tracks = collect_tracks(frames, list(range(len(frames))), warnings)
+    settings = SurveySettings(SURVEY_ROOM.marker_size_m, intrinsics_given=True)
+    state = SurveyState.start(tracks, SURVEY_ROOM.camera, settings, StageClock(), warnings)
+    truth = {t.id: t.discs for t in room_walk.scene.targets}
+    for k, target_id in enumerate(tracks.ids):
+        state.reconstruction.place(k, truth[int(target_id)])
+    for f, pose in enumerate(room_walk.poses):
+        if len(state.views.of_frame[f]):
+            state.reconstruction.set_pose(f, pose)
+    state.seed_frame = int(np.flatnonzero(state.reconstruction.registered())[0])
+    return state
