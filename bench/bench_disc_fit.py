@@ -31,14 +31,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.sim import degrade
-from app.core.detection.candidates import load_default_classifier
-from app.core.detection.detector import Detector
-from app.core.detection.disc_fit import fit_disc_centres
-from app.core.detection import warm_up
-from app.sim.examples import BENCH_CAMERA, BENCH_ROOM
-from app.sim.scenes import render_frame
-from app.core.geometry.homography import disc_axes, homographies
+from app.core.detection import Detector, fit_disc_centres, load_default_classifier, warm_up
+from app.core.geometry import disc_axes, homographies
+from app.sim import BENCH_CAMERA, BENCH_ROOM, degrade, render_frame
 
 BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]
 FACING_BINS = [0.3, 0.5, 0.7, 0.85, 1.01]

@@ -23,10 +23,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from app.core.geometry import Camera, Pose, TargetObservation, cramer_rao_position_rms, estimate_pose
 from app.core.geometry import pose as pose_module
-from app.core.geometry.camera import Camera, Pose
-from app.core.geometry.pose import TargetObservation, cramer_rao_position_rms, estimate_pose
-from app.sim.scenes import PlacedTarget
+from app.sim import PlacedTarget
 
 ROWS = {"1 target, nonlinear": ("single", 1), "3 targets, mean of single poses": ("mean", 3),
         "3 targets, POSIT": ("posit", 3), "3 targets, nonlinear (paper)": ("nonlinear", 3)}
@@ -116,9 +115,7 @@ def main() -> None:
 
 def _tilt_table(camera: Camera, trials: list[tuple[Pose, list[PlacedTarget], list[TargetObservation]]]) -> None:
     """How often a single-target pose takes the wrong tilt: chosen by the card's own
-    residual (``single``, and the old ``mean``) or by the other targets' discs (``mean``)."""
-    if not hasattr(pose_module, "single_target_poses"):
-        return  # an older pose module
+    residual (``single``) or by the other targets' discs (``mean``)."""
     own: list[bool] = []
     others: list[bool] = []
     total = 0
@@ -135,7 +132,7 @@ def _tilt_table(camera: Camera, trials: list[tuple[Pose, list[PlacedTarget], lis
           "(two tilts over 1 deg apart).\n")
     print("| the tilt of each single-target pose chosen by | wrong tilt (of all single-target poses) |")
     print("|---|---:|")
-    print(f"| its own four discs' residual (`single`; the old `mean`) | {sum(own) / total:.1%} |")
+    print(f"| its own four discs' residual (`single`) | {sum(own) / total:.1%} |")
     print(f"| the other targets' discs (`mean`) | {sum(others) / total:.1%} |")
 
 

@@ -11,9 +11,8 @@ import time
 
 import numpy as np
 
-from app.sim import degrade, scenes
-from app.core.geometry.camera import Camera
-from app.sim.render import render
+from app.core.geometry import Camera
+from app.sim import degrade, render, scenes
 
 
 def _percentiles(ms: list[float]) -> str:

@@ -30,17 +30,17 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.core.geometry.alignment import similarity_from_points
-from app.core.geometry.camera import Camera
-from app.core.detection.candidates import load_default_classifier
-from app.core.detection.detector import Detector
-from app.core.detection import warm_up
-from app.core.geometry.pose import PoseUndetermined, TargetObservation, estimate_pose
-from app.sim.examples import BENCH_CAMERA, BENCH_ROOM
-from app.sim.scenes import camera_walk, frame_truth, render_walk
+from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up
+from app.core.geometry import (
+    Camera,
+    PoseUndetermined,
+    TargetObservation,
+    disc_axes,
+    estimate_pose,
+    similarity_from_points,
+)
 from app.core.survey import survey
-from app.core.detection.targets import DetectedTarget
-from app.core.geometry.homography import disc_axes
+from app.sim import BENCH_CAMERA, BENCH_ROOM, camera_walk, frame_truth, render_walk
 
 def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: float | None = None):  # type: ignore[no-untyped-def]
     """Detections, truths and detection time of a walk: the real detector on rendered

@@ -36,8 +36,8 @@ from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.core.detection.candidates import find_candidates, load_default_classifier, pyramid  # noqa: E402
-from app.core.detection.targets import assemble_targets  # noqa: E402
+from app.core.detection import assemble_targets, find_candidates, load_default_classifier  # noqa: E402
+from app.core.detection.candidates import pyramid  # noqa: E402
 from app.sim.candidates import simulate_candidates  # noqa: E402
 from bench.bench_detect import EMPTY, Stats, draw_frame, score_frame  # noqa: E402
 from bench.peers import truth_cards  # noqa: E402

@@ -61,9 +61,8 @@ import numpy as np
 import websockets
 from tqdm import tqdm
 
-from app.core.geometry.camera import Pose
-from app.sim.examples import BENCH_ROOM
-from app.sim.scenes import render_walk
+from app.core.geometry import Pose
+from app.sim import BENCH_ROOM, render_walk
 
 MODES = {"regions": True, "full": False}
 #: timing_ms keys shown in the split of the server's time.

@@ -1,4 +1,4 @@
-"""Peer detectors for the side-by-side detection benchmark (issue 4), on a common footing.
+"""Peer detectors for the side-by-side detection benchmark, on a common footing.
 
 Every detector here is an object with
 
@@ -8,8 +8,8 @@ Every detector here is an object with
   then renders the same geometry and degradations with that artwork in place of ours);
 * ``available`` / ``reason`` - whether it can run here (our own detector and the blob
   baseline need ``app/core/detection/candidates.py`` and ``app/core/detection/targets.py``);
-* ``detect(gray) -> list[(id, points (4, 2))]`` - points in pixels (DESIGN.md convention:
-  centre of the top-left pixel at (0, 0)) in the order 0 top-left, 1 top-right,
+* ``detect(gray) -> list[(id, points (4, 2))]`` - points in pixels (centre of the top-left
+  pixel at (0, 0), docs/map-format.md) in the order 0 top-left, 1 top-right,
   2 bottom-right, 3 bottom-left *as printed*: our disc centres, or the four outer corners
   of a tag's black square (the projections of ``CardArtwork.points_uv``).
 
