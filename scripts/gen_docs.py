@@ -35,8 +35,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES: tuple[str, ...] = ("docs/configuration.md", "docs/protocol.md")
 
 BLOCK = re.compile(
-    r"(?P<start><!-- generated: (?P<kind>[a-z]+) (?P<target>[\w.]+:\w+) -->\n)(?P<body>.*?)(?P<end><!-- end generated -->)",
-    re.S,
+    r"(?P<start><!-- generated: (?P<kind>[a-z]+) (?P<target>[\w.]+:\w+) -->\n)"
+    r"(?P<body>.*?)"
+    r"(?P<end><!-- end generated -->)",
+    re.DOTALL,
 )
 _CHOICES = re.compile(r"^\^\(([\w|]+)\)\$$")
 
@@ -53,7 +55,7 @@ def _resolve(target: str) -> type:
     module, _, name = target.partition(":")
     found = getattr(importlib.import_module(module), name, None)
     if not isinstance(found, type):
-        raise LookupError(f"{target} is not a class")
+        raise TypeError(f"{target} is not a class")
     return found
 
 
@@ -141,8 +143,6 @@ def _default(value: Any) -> str:
         return f"`{value.as_posix()}`"
     if isinstance(value, int) and value >= 1024 * 1024 and value % (1024 * 1024) == 0:
         return f"`{value}` ({value // (1024 * 1024)} MiB)"
-    if isinstance(value, (int, float)):
-        return f"`{value}`"
     return f"`{value}`"
 
 
