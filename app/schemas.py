@@ -83,10 +83,13 @@ class CameraModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    width: int = Field(gt=0, le=20000)
-    height: int = Field(gt=0, le=20000)
-    K: Annotated[list[Row3], Field(min_length=3, max_length=3)]
-    dist: Annotated[list[Finite], Field(min_length=5, max_length=5)]
+    width: int = Field(gt=0, le=20000, description="Image width the intrinsics are for, px.")
+    height: int = Field(gt=0, le=20000, description="Image height the intrinsics are for, px.")
+    K: Annotated[list[Row3], Field(min_length=3, max_length=3, description=(
+        "Camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels, the centre of the top-left pixel "
+        "at (0, 0)."))]
+    dist: Annotated[list[Finite], Field(min_length=5, max_length=5, description=(
+        "OpenCV distortion coefficients [k1, k2, p1, p2, k3]."))]
 
     @model_validator(mode="after")
     def _camera_matrix(self) -> CameraModel:
@@ -206,11 +209,11 @@ class ClassifierOut(BaseModel):
 
 
 class DetectedTargetOut(BaseModel):
-    id: int
+    id: int = Field(description="The target's id: the code it carries, in the environment's marker family.")
     discs: list[list[float]] = Field(
         description="Disc centres [u, v] in pixels: top-left, top-right, bottom-right, bottom-left of the card."
     )
-    score: float
+    score: float = Field(description="Confidence 0..1: how clearly the target's weakest check passed.")
 
 
 class DetectResponse(BaseModel):
@@ -225,25 +228,27 @@ class DetectResponse(BaseModel):
 
 
 class PoseOut(BaseModel):
-    R: list[list[float]]
-    t: list[float]
+    R: list[list[float]] = Field(description="Rotation, map to camera: x_cam = R @ X_map + t (3x3).")
+    t: list[float] = Field(description="Translation, map to camera (m).")
     position: list[float] = Field(description="Camera centre in map coordinates, -R^T t (m).")
-    reprojection_rms_px: float
-    n_targets: int
-    n_points: int
-    covariance_position: list[list[float]]
-    focal_px: float
-    method: str
-    rejected_targets: list[int]
+    reprojection_rms_px: float = Field(description="RMS reprojection error over the disc centres the pose rests on, px.")
+    n_targets: int = Field(description="Targets the pose rests on (outliers excluded).")
+    n_points: int = Field(description="Disc centres the pose rests on.")
+    covariance_position: list[list[float]] = Field(
+        description="Covariance of the camera centre (3x3, m^2), at the noise level of the residuals.")
+    focal_px: float = Field(description="Focal length used: the camera's, or estimated when focal estimation is on (px).")
+    method: str = Field(description="Pose method: nonlinear, posit, mean or single.")
+    rejected_targets: list[int] = Field(description="Ids of targets refused as outliers.")
 
 
 class LocateResponse(BaseModel):
-    width: int
-    height: int
-    targets: list[DetectedTargetOut]
-    pose: PoseOut | None
+    width: int = Field(description="Width of the image, px.")
+    height: int = Field(description="Height of the image, px.")
+    targets: list[DetectedTargetOut] = Field(description="Targets detected in the image.")
+    pose: PoseOut | None = Field(description="The camera's pose in the map, or null (see pose_error).")
     pose_error: str | None = Field(None, description="Why there is no pose, when there is none.")
-    timing_ms: dict[str, float]
+    timing_ms: dict[str, float] = Field(description=(
+        "Where the time went, ms: decode, plan, the detector's stages (candidates, targets, detect, ...), pose, total."))
 
 
 # --- tracking: the /track WebSocket ---------------------------------------------------

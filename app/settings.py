@@ -17,19 +17,22 @@ class Settings(BaseSettings):
     database_url: str | None = Field(
         None, description="Any SQLAlchemy URL; default: a SQLite file under data_dir."
     )
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
-    sqlite_busy_timeout_ms: int = Field(5000, ge=0)
+    host: str = Field("127.0.0.1", description="Address where `fidotrack serve` listens.")
+    port: int = Field(8000, ge=1, le=65535, description="Port where `fidotrack serve` listens.")
+    sqlite_busy_timeout_ms: int = Field(
+        5000, ge=0, description="SQLite busy timeout, ms: how long a write waits for another writer's lock.")
 
     api_keys: bool = Field(False, description="Require API keys (create them with `fidotrack keys create`).")
     log_format: str = Field("json", pattern="^(json|text)$", description="Log lines as JSON objects or text.")
-    log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
+    log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$",
+                           description="Least severe level of the structured logs on stderr.")
 
     # Limits on what clients send.
     max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Largest survey upload.")
-    max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description="Largest single image or frame.")
+    max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description=(
+        "Largest image: a /detect or /locate body, a training image, a decoded frame."))
     max_image_pixels: int = Field(40_000_000, ge=64 * 64, description="Largest width*height decoded.")
-    max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest WebSocket frame.")
+    max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest /track frame (one binary WebSocket message).")
     max_training_images: int = Field(200, ge=1, description="Most images in one training upload.")
     max_video_frames: int = Field(20_000, ge=1, description="Longest survey video, in frames.")
     max_video_pixels: int = Field(3840 * 2160, ge=64 * 64, description="Largest survey video frame (width*height).")

@@ -42,14 +42,6 @@ BLOCK = re.compile(
 )
 _CHOICES = re.compile(r"^\^\(([\w|]+)\)\$$")
 
-#: Settings fields whose description the code does not give yet.
-SETTINGS_FALLBACK: dict[str, str] = {
-    "host": "Address where `fidotrack serve` listens.",
-    "port": "Port where `fidotrack serve` listens.",
-    "sqlite_busy_timeout_ms": "SQLite busy timeout, ms: how long a write waits for another writer's lock.",
-    "log_level": "Least severe level of the structured logs on stderr.",
-}
-
 
 def _resolve(target: str) -> type:
     module, _, name = target.partition(":")
@@ -155,7 +147,7 @@ def settings_table(cls: type, linked: frozenset[str] = frozenset()) -> str:
     properties = cls.model_json_schema()["properties"]
     lines = ["| variable | type | default | description |", "|---|---|---|---|"]
     for name, field in cls.model_fields.items():
-        description = field.description or SETTINGS_FALLBACK.get(name, "")
+        description = field.description or ""
         lines.append(f"| `{(prefix + name).upper()}` | {_cell(schema_type(properties[name], linked))} | "
                      f"{_cell(_default(field.default))} | {_cell(description)} |")
     return "\n".join(lines)

@@ -93,3 +93,17 @@ def test_the_package_map_names_every_module() -> None:
     assert not missing, f"docs/architecture.md does not name: {missing}"
     gone = sorted(n for n in named if n.startswith("app/") and n not in modules)
     assert not gone, f"docs/architecture.md names modules that do not exist: {gone}"
+
+
+def test_every_documented_field_says_what_it_is() -> None:
+    """Each setting and each field of the documented messages carries a description, so
+    that the generated tables have no blank cells for clients to guess at."""
+    generator = _generator()
+    blank = []
+    for page in generator.PAGES:
+        for match in generator.BLOCK.finditer((ROOT / page).read_text(encoding="utf-8")):
+            cls = generator._resolve(match["target"])
+            for name, field in cls.model_fields.items():
+                if not (field.description or "").strip():
+                    blank.append(f"{cls.__name__}.{name}")
+    assert not blank, f"fields without a description: {blank}"
