@@ -230,11 +230,23 @@ class Reconstruction:
                    np.full((4 * n_targets, 3), np.nan))
 
     def registered(self) -> np.ndarray:
-        """(F,) whether each frame has a pose."""
+        """Which frames have a pose.
+
+        Returns
+        -------
+        (F,) bool ndarray
+            True where the frame is registered.
+        """
         return np.isfinite(self.rvec[:, 0])
 
     def placed(self) -> np.ndarray:
-        """(4T,) whether each disc has a point."""
+        """Which discs have a point.
+
+        Returns
+        -------
+        (4T,) bool ndarray
+            True where the disc is placed (4 per target, in disc order).
+        """
         return np.isfinite(self.X[:, 0])
 
     @property
@@ -243,27 +255,77 @@ class Reconstruction:
         return int(self.registered().sum())
 
     def pose(self, f: int) -> Pose:
-        """The pose of frame ``f`` (map to camera)."""
+        """The pose of a registered frame.
+
+        Parameters
+        ----------
+        f : int
+            The frame's index among the survey's frames.
+
+        Returns
+        -------
+        Pose
+            Map to camera, ``x_cam = R @ X_map + t``.
+        """
         return Pose.from_rvec_tvec(self.rvec[f], self.tvec[f])
 
     def set_pose(self, f: int, pose: Pose) -> None:
-        """Register frame ``f`` at ``pose``."""
+        """Register a frame.
+
+        Parameters
+        ----------
+        f : int
+            The frame's index.
+        pose : Pose
+            Its pose, map to camera.
+        """
         self.rvec[f], self.tvec[f] = pose.rvec, pose.t
 
     def unregister(self, f: int) -> None:
-        """Take frame ``f``'s pose out."""
+        """Take a frame's pose out (it is registered again later, or never).
+
+        Parameters
+        ----------
+        f : int
+            The frame's index.
+        """
         self.rvec[f] = self.tvec[f] = np.nan
 
     def discs(self, t: int) -> np.ndarray:
-        """(4, 3) the points of target ``t``'s discs (a view into ``X``)."""
+        """A target's disc points.
+
+        Parameters
+        ----------
+        t : int
+            The target's index among the survey's targets.
+
+        Returns
+        -------
+        (4, 3) ndarray
+            Its discs' points in disc order: a view into ``X``.
+        """
         return self.X[4 * t : 4 * t + 4]
 
     def place(self, t: int, discs: np.ndarray) -> None:
-        """Set target ``t``'s discs to ``discs`` (4, 3)."""
+        """Place a target.
+
+        Parameters
+        ----------
+        t : int
+            The target's index.
+        discs : (4, 3) ndarray
+            Its discs' points in disc order.
+        """
         self.X[4 * t : 4 * t + 4] = discs
 
     def unplace(self, t: int) -> None:
-        """Take target ``t``'s discs out."""
+        """Take a target's discs out (it is placed again later, or never).
+
+        Parameters
+        ----------
+        t : int
+            The target's index.
+        """
         self.X[4 * t : 4 * t + 4] = np.nan
 
     def errors(self, tracks: Tracks, obs: np.ndarray) -> np.ndarray:
