@@ -5,11 +5,13 @@ measure against it; the service never imports it.
 Modules:
 
 * `app.sim.render`: textured planar quads seen through a `Camera` (`render`).
-* `app.sim.scenes`: cards placed in 3D, photo-textured rooms, camera walks, named
-  single-frame scenarios and the ground truth of every frame.
+* `app.sim.scenes`: cards placed in 3D, rooms with photo-textured or painted walls,
+  named single-frame scenarios and the ground truth of every frame.
+* `app.sim.walks`: camera walks through a room (survey loops, tracking, a loop near the
+  middle, a pan), hand-held shake and the motion blur of each exposure.
 * `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG) and
   their named presets.
-* `app.sim.examples`: the named example rooms the benchmarks and tests measure on.
+* `app.sim.examples`: the named example rooms and walks the benchmarks and tests measure on.
 
 The photographs on walls and backgrounds need scikit-image: ``pip install
 'fidotrack[sim]'``. The package's name `render` is the function; import the render
@@ -17,7 +19,18 @@ module's other names from it directly (``from app.sim.render import visible_poin
 """
 
 from app.sim.degrade import PRESETS, Degradation, DegradationRanges
-from app.sim.examples import BENCH_CAMERA, BENCH_ROOM, EXAMPLES, SMALL_ROOM, ExampleRoom, RoomWalk
+from app.sim.examples import (
+    BENCH_CAMERA,
+    BENCH_ROOM,
+    EXAMPLES,
+    PLAIN_ROOM,
+    SMALL_ROOM,
+    SPARSE_ROOM,
+    WALKS,
+    ExampleRoom,
+    ExampleWalk,
+    RoomWalk,
+)
 from app.sim.render import TexturedQuad, render
 from app.sim.scenes import (
     SCENARIOS,
@@ -26,36 +39,46 @@ from app.sim.scenes import (
     PlacedTarget,
     Scene,
     TargetTruth,
-    camera_walk,
     frame_truth,
     render_frame,
     render_walk,
     room_scene,
     scenario_frame,
 )
+from app.sim.walks import ExposureBlur, Shake, Walk, WalkKind, camera_walk, draw_walk, walk_speeds
 
 __all__ = [
     "BENCH_CAMERA",
     "BENCH_ROOM",
     "EXAMPLES",
+    "PLAIN_ROOM",
     "PRESETS",
     "SCENARIOS",
     "SMALL_ROOM",
+    "SPARSE_ROOM",
+    "WALKS",
     "Degradation",
     "DegradationRanges",
     "ExampleRoom",
+    "ExampleWalk",
+    "ExposureBlur",
     "FrameScenario",
     "FrameTruth",
     "PlacedTarget",
     "RoomWalk",
     "Scene",
+    "Shake",
     "TargetTruth",
     "TexturedQuad",
+    "Walk",
+    "WalkKind",
     "camera_walk",
+    "draw_walk",
     "frame_truth",
     "render",
     "render_frame",
     "render_walk",
     "room_scene",
     "scenario_frame",
+    "walk_speeds",
 ]

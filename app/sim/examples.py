@@ -1,22 +1,45 @@
-"""Named example rooms: the scenes that the benchmarks and the tests measure on.
+"""Named example rooms and walks: the scenes that the benchmarks and the tests measure on.
 
-Each example fixes a room (its size, cards and card size), a camera and how a walk
-through the room is drawn. `ExampleRoom.walk` draws the room and a walk from one seed
-(the room first, then the walk, from the same random stream) and hands back the stream
-so that rendering the walk goes on from it: the same seed gives the same room, the same
-walk and the same frames wherever it is used.
+Each example room fixes a room (its size, cards, card size, how the cards are placed and
+how the walls look) and a camera. `ExampleRoom.walk` draws the room and a walk from one
+seed (the room first, then the walk, from the same random stream) and hands back the
+stream so that rendering the walk goes on from it: the same seed gives the same room,
+the same walk and the same frames wherever it is used. Each example walk fixes a room,
+a kind of walk and whether it is hand-held (shake, motion blur of the exposure).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from app.core.geometry import Camera, Pose
-from app.sim.scenes import Scene, camera_walk, room_scene
+from app.sim.scenes import CardPlacement, FrameTruth, Scene, WallFinish, render_walk, room_scene
+from app.sim.walks import ExposureBlur, Shake, WalkKind, draw_walk
 
-__all__ = ["BENCH_CAMERA", "BENCH_ROOM", "EXAMPLES", "SMALL_ROOM", "ExampleRoom", "RoomWalk", "example"]
+__all__ = [
+    "BENCH_CAMERA",
+    "BENCH_ROOM",
+    "BENCH_WALK",
+    "CENTRE_LOOP_WALK",
+    "EXAMPLES",
+    "EXPOSURE_S",
+    "HAND_HELD",
+    "PAN_WALK",
+    "PLAIN_ROOM",
+    "PLAIN_WALK",
+    "SMALL_ROOM",
+    "SPARSE_ROOM",
+    "SPARSE_WALK",
+    "WALKS",
+    "ExampleRoom",
+    "ExampleWalk",
+    "RoomWalk",
+    "example",
+    "example_walk",
+]
 
 #: The benchmarks' camera: 640x480, f 820 px, principal point at the image centre,
 #: barrel distortion k1 -0.12 (a typical webcam or phone lens).
@@ -36,11 +59,36 @@ class RoomWalk:
         The walk, map-to-camera transforms.
     rng : numpy.random.Generator
         The stream after drawing both: rendering the walk goes on from it.
+    blur : list of ExposureBlur or None
+        Each frame's motion blur from the camera's motion during its exposure; None:
+        the degradation preset's random blur.
     """
 
     scene: Scene
     poses: list[Pose]
     rng: np.random.Generator
+    blur: list[ExposureBlur] | None = None
+
+    def frames(self, camera: Camera, degradation: str = "default",
+               supersample: int = 2) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+        """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
+        drawn on from `rng`.
+
+        Parameters
+        ----------
+        camera : Camera
+            The camera that films the walk.
+        degradation : str, optional
+            Name of a degradation preset.
+        supersample : int, optional
+            Samples per pixel along each axis.
+
+        Yields
+        ------
+        image : (height, width) ndarray of uint8
+        truth : FrameTruth
+        """
+        yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur)
 
 
 @dataclass(frozen=True)
@@ -59,6 +107,10 @@ class ExampleRoom:
         Side of a card, metres.
     camera : Camera
         The camera that films the room.
+    cards : CardPlacement
+        How the cards are placed on the walls ("random" or "spread").
+    walls : WallFinish
+        How the walls look ("photo" mosaics or "plain" paint).
     """
 
     name: str
@@ -66,6 +118,8 @@ class ExampleRoom:
     n_targets: int
     marker_size_m: float
     camera: Camera
+    cards: CardPlacement = "random"
+    walls: WallFinish = "photo"
 
     def scene(self, seed: int) -> Scene:
         """The room drawn from `seed` (its cards' places and the wall photographs).
@@ -82,7 +136,8 @@ class ExampleRoom:
         """
         return self.walk(seed, 0).scene
 
-    def walk(self, seed: int, n_frames: int, kind: str = "calibration") -> RoomWalk:
+    def walk(self, seed: int, n_frames: int, kind: WalkKind = "calibration", shake: Shake | None = None,
+             exposure_s: float | None = None) -> RoomWalk:
         """The room drawn from `seed` and then a walk of `n_frames` poses of `kind`
         through it, from the same random stream.
 
@@ -92,18 +147,28 @@ class ExampleRoom:
             Seed of the random stream that draws the room, then the walk.
         n_frames : int
             Poses in the walk.
-        kind : {"calibration", "tracking"}
-            A calibration walk (two loops round the room, filming the walls) or a
-            tracking walk (a slower wander).
+        kind : WalkKind
+            A calibration walk (two loops round the room, filming the walls), a tracking
+            walk (a slower wander), a centre loop or a pan (`app.sim.walks`).
+        shake : Shake, optional
+            Hand-held jitter on the walk, drawn after it.
+        exposure_s : float, optional
+            Exposure time, seconds: each frame gets the motion blur of the camera's
+            motion during it (its pose is the one at mid-exposure). None: the
+            degradation preset's random blur.
 
         Returns
         -------
         RoomWalk
-            The scene, the poses and the random stream, ready to render the walk.
+            The scene, the poses, the random stream and the frames' blur, ready to render
+            the walk.
         """
         rng = np.random.default_rng(seed)
-        scene = room_scene(rng, self.size, n_targets=self.n_targets, marker_size_m=self.marker_size_m)
-        return RoomWalk(scene, camera_walk(rng, scene.room_size, n_frames, kind=kind), rng)
+        scene = room_scene(rng, self.size, n_targets=self.n_targets, marker_size_m=self.marker_size_m,
+                           walls=self.walls, cards=self.cards)
+        walk = draw_walk(rng, self.size, n_frames, kind, shake)
+        blur = walk.exposure_blur(self.camera, exposure_s, self.size) if exposure_s is not None else None
+        return RoomWalk(scene, walk.poses, rng, blur)
 
 
 #: The benchmarks' room: 8 x 6 x 3 m, 30 cards of 0.2 m (bench_survey, bench_track,
@@ -115,8 +180,87 @@ BENCH_ROOM = ExampleRoom("bench", (8.0, 6.0, 3.0), 30, 0.2, BENCH_CAMERA)
 SMALL_ROOM = ExampleRoom("small", (5.0, 4.0, 2.6), 24, 0.25,
                          Camera.pinhole(700.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0]))
 
+#: A room as people have one: the bench room's size and camera with 10 cards of 0.2 m
+#: spread round the walls (about 2.8 m apart, long stretches of bare wall between them),
+#: on photo walls.
+SPARSE_ROOM = ExampleRoom("sparse", (8.0, 6.0, 3.0), 10, 0.2, BENCH_CAMERA, cards="spread")
+
+#: The sparse room with plain painted walls: the same cards as `SPARSE_ROOM` for the
+#: same seed, nothing on the walls for natural features to hold on to.
+PLAIN_ROOM = ExampleRoom("plain", (8.0, 6.0, 3.0), 10, 0.2, BENCH_CAMERA, cards="spread", walls="plain")
+
 #: The example rooms by name.
-EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMALL_ROOM)}
+EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMALL_ROOM, SPARSE_ROOM, PLAIN_ROOM)}
+
+
+#: A phone held in the hand: 0.2 degrees RMS of rotation and 1.5 mm of translation
+#: jitter about each axis, at 1.5-6 Hz.
+HAND_HELD = Shake()
+
+#: The example walks' exposure, seconds: a phone's video in a well-lit room (at 36
+#: degrees a second, a 5 px smear at f = 820 px).
+EXPOSURE_S = 1.0 / 100.0
+
+
+@dataclass(frozen=True)
+class ExampleWalk:
+    """A named way of filming an example room.
+
+    Attributes
+    ----------
+    name : str
+        The key in `WALKS`.
+    room : ExampleRoom
+        The room filmed.
+    kind : WalkKind
+        How the camera moves.
+    shake : Shake or None
+        Hand-held jitter; None: a steady camera.
+    exposure_s : float or None
+        Exposure time for the motion blur of the camera's own motion; None: the
+        degradation preset's random blur.
+    """
+
+    name: str
+    room: ExampleRoom
+    kind: WalkKind
+    shake: Shake | None = None
+    exposure_s: float | None = None
+
+    def walk(self, seed: int, n_frames: int) -> RoomWalk:
+        """The room drawn from `seed`, then this walk of `n_frames` frames through it
+        (`ExampleRoom.walk`).
+
+        Parameters
+        ----------
+        seed : int
+            Seed of the random stream that draws the room, then the walk.
+        n_frames : int
+            Frames of the walk.
+
+        Returns
+        -------
+        RoomWalk
+        """
+        return self.room.walk(seed, n_frames, self.kind, self.shake, self.exposure_s)
+
+
+#: The benchmarks' survey walk: two loops round the bench room, steady, random blur.
+BENCH_WALK = ExampleWalk("bench", BENCH_ROOM, "calibration")
+#: A small loop near the middle of the bench room looking out at its walls, hand-held.
+CENTRE_LOOP_WALK = ExampleWalk("centre_loop", BENCH_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
+#: Turning round on one spot in the bench room, hand-held but with no translation: a
+#: pure pan, no baseline.
+PAN_WALK = ExampleWalk("pan", BENCH_ROOM, "pan", Shake(translation_m=0.0), EXPOSURE_S)
+#: The centre loop in the sparse room: one or two cards in most frames, or none.
+SPARSE_WALK = ExampleWalk("sparse", SPARSE_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
+#: The centre loop in the sparse room with plain walls.
+PLAIN_WALK = ExampleWalk("plain", PLAIN_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
+
+#: The example walks by name.
+WALKS: dict[str, ExampleWalk] = {
+    walk.name: walk for walk in (BENCH_WALK, CENTRE_LOOP_WALK, PAN_WALK, SPARSE_WALK, PLAIN_WALK)
+}
 
 
 def example(name: str) -> ExampleRoom:
@@ -137,3 +281,23 @@ def example(name: str) -> ExampleRoom:
         If there is no such example.
     """
     return EXAMPLES[name]
+
+
+def example_walk(name: str) -> ExampleWalk:
+    """The example walk called `name`.
+
+    Parameters
+    ----------
+    name : str
+        A key of `WALKS`.
+
+    Returns
+    -------
+    ExampleWalk
+
+    Raises
+    ------
+    KeyError
+        If there is no such walk.
+    """
+    return WALKS[name]

@@ -1,5 +1,6 @@
-"""Scenes for the simulator: marker cards placed in 3D, photo-textured rooms, camera
-walks, and the ground truth of every rendered frame.
+"""Scenes for the simulator: marker cards placed in 3D, rooms with photo-textured or
+plainly painted walls, and the ground truth of every rendered frame. The camera walks
+through a room are `app.sim.walks`'s (`camera_walk` is also importable from here).
 
 Ground truth is the projection of each disc's 3D centre (not the centroid of its imaged
 ellipse), taken from the scene geometry, never from the code under test. Map
@@ -16,33 +17,38 @@ import dataclasses
 import functools
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from app.core.geometry import Camera, Pose
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family, marker_layout, render_card
 from app.sim import degrade
 from app.sim.render import TexturedQuad, render
+from app.sim.walks import ExposureBlur, camera_walk
 
 __all__ = [
+    "CARD_PLACEMENTS",
     "CARD_TEXTURE_PX",
     "PHOTO_NAMES",
     "SCENARIOS",
+    "WALL_FINISHES",
     "CardArtwork",
+    "CardPlacement",
     "FrameScenario",
     "FrameTruth",
     "PlacedTarget",
     "Scene",
     "TargetTruth",
     "Wall",
+    "WallFinish",
     "builtin_photos",
     "camera_walk",
     "card_texture",
     "frame_truth",
     "photo_mosaic",
+    "plain_paint",
     "render_frame",
     "render_walk",
     "room_scene",
@@ -417,6 +423,57 @@ def room_walls(size: tuple[float, float, float]) -> list[Wall]:
     ]
 
 
+#: How a room's walls, floor and ceiling look: "photo", mosaics of photographs (clutter
+#: at every scale, for natural features to hold on to); "plain", uniform paint lit a
+#: little unevenly, with no texture at all.
+WallFinish = Literal["photo", "plain"]
+#: Every wall finish.
+WALL_FINISHES: tuple[WallFinish, ...] = get_args(WallFinish)
+#: How the cards are placed on the side walls: "random", anywhere (at least 1.6 card
+#: sides apart), so that cards cluster and most views hold several; "spread", evenly
+#: round the room with some jitter, long stretches of bare wall between them.
+CardPlacement = Literal["random", "spread"]
+#: Every card placement.
+CARD_PLACEMENTS: tuple[CardPlacement, ...] = get_args(CardPlacement)
+
+# Plain paint: the grey of each face (the four side walls, floor, ceiling): the light
+# falls on each wall differently.
+_PAINT_GREY = (0.80, 0.74, 0.77, 0.71, 0.45, 0.86)
+# Its shading: lighter towards the ceiling lights, darker towards the corners (fractions).
+_PAINT_TOP_LIGHT, _PAINT_CORNER_SHADE = 0.04, 0.04
+# Texels a side of a painted face: the shading is smooth, so a few texels carry it.
+_PAINT_PX = 16
+# Spread cards keep this far from the ends of a wall, metres (two cards either side of a
+# corner stay apart).
+_SPREAD_CORNER_M = 0.5
+
+
+def plain_paint(grey: float, side_wall: bool) -> np.ndarray:
+    """A painted face's texture: one grey, slightly shaded, no texture.
+
+    Parameters
+    ----------
+    grey : float
+        The paint's grey level in [0, 1].
+    side_wall : bool
+        Whether the face is a side wall (lighter towards its top, the ceiling) rather than
+        the floor or the ceiling.
+
+    Returns
+    -------
+    (16, 16) ndarray of float32
+        Rows top to bottom as seen from inside the room; the shading is a smooth
+        function of the position, darker by up to 4 % towards the face's ends.
+    """
+    across = np.linspace(-1.0, 1.0, _PAINT_PX)
+    shade = 1.0 - _PAINT_CORNER_SHADE * across[None, :] ** 2
+    if side_wall:
+        shade = shade * (1.0 + _PAINT_TOP_LIGHT * -across[:, None])
+    else:
+        shade = shade * (1.0 - _PAINT_CORNER_SHADE * across[:, None] ** 2)
+    return np.clip(grey * shade, 0.0, 1.0).astype(np.float32)
+
+
 def room_scene(
     rng: np.random.Generator,
     size: tuple[float, float, float] = (8.0, 6.0, 3.0),
@@ -425,16 +482,20 @@ def room_scene(
     family: str = DEFAULT_FAMILY,
     max_bend_m: float = 0.004,
     photos: Sequence[np.ndarray] | None = None,
+    walls: WallFinish = "photo",
+    cards: CardPlacement = "random",
 ) -> Scene:
-    """A box room with photo-textured walls, floor and ceiling and cards on its walls.
+    """A box room with textured or painted walls, floor and ceiling, and cards on its walls.
 
-    The cards get random places, rotations and heights (centres 0.7 m up to
-    min(H - 0.3, 2.3) m) on the four side walls, 2 mm off the wall, ids 0 .. n_targets - 1.
+    The cards get places, rotations and heights (centres 0.7 m up to min(H - 0.3, 2.3) m)
+    on the four side walls, 2 mm off the wall, ids 0 .. n_targets - 1.
 
     Parameters
     ----------
     rng : numpy.random.Generator
-        Draws the wall textures, then the cards.
+        Draws the wall textures, then the cards. Painted walls draw the same numbers as
+        photo walls, so one seed gives the same cards and the same walk after them
+        whatever the finish.
     size : tuple of float, optional
         (W, D, H) of the room, metres.
     n_targets : int, optional
@@ -447,6 +508,10 @@ def room_scene(
         Each card's bend is drawn uniformly from [0, max_bend_m], metres.
     photos : sequence of ndarray, optional
         Wall photographs; by default `builtin_photos`.
+    walls : WallFinish, optional
+        "photo" (photo mosaics) or "plain" (painted, `plain_paint`).
+    cards : CardPlacement, optional
+        "random" or "spread".
 
     Returns
     -------
@@ -455,20 +520,30 @@ def room_scene(
     Raises
     ------
     ValueError
-        If the cards do not fit on the walls.
+        If the cards do not fit on the walls, or `walls` or `cards` is unknown.
     """
+    if walls not in WALL_FINISHES:
+        raise ValueError(f"unknown wall finish {walls!r}: one of {', '.join(WALL_FINISHES)}")
+    if cards not in CARD_PLACEMENTS:
+        raise ValueError(f"unknown card placement {cards!r}: one of {', '.join(CARD_PLACEMENTS)}")
     photos = photos if photos is not None else builtin_photos()
-    walls = room_walls(size)
+    faces = room_walls(size)
     background = []
-    for wall in walls:
+    for index, wall in enumerate(faces):
         tile_m = 0.75
         rows = max(1, round(wall.height / tile_m))
         cols = max(1, round(wall.width / tile_m))
+        # Painted walls draw the mosaic too (and drop it): the cards come next from the stream.
         texture = photo_mosaic(photos, rows, cols, 192, rng)
+        if walls == "plain":
+            texture = plain_paint(_PAINT_GREY[index], side_wall=index < 4)
         background.append(_plane_quad(wall.centre, wall.inward, wall.up, wall.width, wall.height, texture))
+    side_walls = faces[:4]
+    if cards == "spread":
+        targets = _spread_cards(rng, side_walls, n_targets, marker_size_m, family, max_bend_m)
+        return Scene(background=background, targets=targets, room_size=size)
 
     targets: list[PlacedTarget] = []
-    side_walls = walls[:4]
     perimeter = np.array([wall.width for wall in side_walls])
     attempts = 0
     while len(targets) < n_targets:
@@ -498,76 +573,34 @@ def room_scene(
     return Scene(background=background, targets=targets, room_size=size)
 
 
-def _smooth_path(rng: np.random.Generator, n_frames: int, n_knots: int, low: np.ndarray,
-                 high: np.ndarray) -> np.ndarray:
-    knots = rng.uniform(low, high, size=(n_knots, 3))
-    spline = CubicSpline(np.linspace(0, 1, n_knots), knots, bc_type="natural")
-    return spline(np.linspace(0, 1, n_frames))
-
-
-def camera_walk(
-    rng: np.random.Generator,
-    room_size: tuple[float, float, float],
-    n_frames: int,
-    kind: str = "calibration",
-) -> list[Pose]:
-    """A smooth hand-held walk through a room.
-
-    Parameters
-    ----------
-    rng : numpy.random.Generator
-        Draws the walk.
-    room_size : tuple of float
-        (W, D, H) of the room, metres.
-    n_frames : int
-        Poses in the walk.
-    kind : {"calibration", "tracking"}, optional
-        "calibration": two loops around the room looking outward at the walls, at two
-        heights, so every wall is seen from widely spaced viewpoints (as the paper asks
-        of a survey video). "tracking": a random smooth path looking at random wall
-        points.
-
-    Returns
-    -------
-    list of Pose
-        Map-to-camera transforms, one per frame.
-
-    Raises
-    ------
-    ValueError
-        If `kind` is unknown.
-    """
-    w, d, h = room_size
-    centre = np.array([w / 2, d / 2, 0.0])
-    up = np.array([0.0, 0.0, 1.0])
-    poses = []
-    if kind == "calibration":
-        # Two loops near the walls looking across the room, at two heights, swinging
-        # left and right: every wall is seen from far, from widely spaced viewpoints.
-        s = np.linspace(0, 1, n_frames)
-        angle = 4 * np.pi * s + rng.uniform(0, 2 * np.pi)
-        radius = 0.8 + 0.1 * np.sin(6 * np.pi * s)
-        eye = np.stack([
-            centre[0] + radius * (w / 2 - 0.6) * np.cos(angle),
-            centre[1] + radius * (d / 2 - 0.6) * np.sin(angle),
-            1.5 - 0.2 * np.cos(2 * np.pi * s) + 0.1 * np.sin(10 * np.pi * s),
-        ], axis=1)
-        yaw = angle + np.pi + 0.9 * np.sin(7 * np.pi * s)
-        look = eye + np.stack([np.cos(yaw), np.sin(yaw), 0.1 * np.sin(5 * np.pi * s)], axis=1)
-    elif kind == "tracking":
-        knots = max(4, n_frames // 40)
-        eye = _smooth_path(rng, n_frames, knots, np.array([1.5, 1.5, 1.1]), np.array([w - 1.5, d - 1.5, 1.9]))
-        look = _smooth_path(rng, n_frames, knots, np.array([-2.0, -2.0, 0.6]), np.array([w + 2.0, d + 2.0, 2.2]))
-        # Keep the gaze at least 1 m ahead so the view direction never degenerates.
-        gaze = look - eye
-        gaze[:, 2] *= 0.3
-        norm = np.linalg.norm(gaze, axis=1, keepdims=True)
-        look = eye + gaze / np.maximum(norm, 1e-9)
-    else:
-        raise ValueError(f"unknown walk kind {kind!r}: calibration or tracking")
-    for e, t in zip(eye, look, strict=True):
-        poses.append(Pose.look_at(e, t, up))
-    return poses
+def _spread_cards(rng: np.random.Generator, side_walls: list[Wall], n_targets: int, marker_size_m: float,
+                  family: str, max_bend_m: float) -> list[PlacedTarget]:
+    """Cards evenly round the side walls: the walls laid end to end, one card every
+    perimeter / n metres from a random start, each moved by up to a quarter of that
+    spacing, none within `_SPREAD_CORNER_M` of a wall's end."""
+    widths = np.array([wall.width for wall in side_walls])
+    starts = np.concatenate([[0.0], np.cumsum(widths)[:-1]])
+    spacing = widths.sum() / max(n_targets, 1)
+    first = rng.uniform(0.0, spacing)
+    targets: list[PlacedTarget] = []
+    for k in range(n_targets):
+        along = (first + k * spacing + rng.uniform(-0.25, 0.25) * spacing) % widths.sum()
+        j = int(np.searchsorted(starts, along, side="right") - 1)
+        wall = side_walls[j]
+        end_margin = min(max(_SPREAD_CORNER_M, marker_size_m), wall.width / 2)
+        a = float(np.clip(along - starts[j], end_margin, wall.width - end_margin)) - wall.width / 2
+        right, down = _frame_of(wall.centre, wall.inward, wall.up)
+        height = rng.uniform(0.7, min(wall.height - 0.3, 2.3))
+        centre = wall.centre + right * a + wall.up * (height - wall.height / 2) + wall.inward * 0.002
+        if any(np.linalg.norm(centre - t.point(np.array([[0.5, 0.5]]))[0]) < 1.6 * marker_size_m for t in targets):
+            raise ValueError(f"cannot spread {n_targets} targets of {marker_size_m} m round the walls: too many")
+        roll = rng.uniform(-np.pi, np.pi)
+        x_axis = np.cos(roll) * right + np.sin(roll) * down
+        y_axis = -np.sin(roll) * right + np.cos(roll) * down
+        origin = centre - marker_size_m / 2 * (x_axis + y_axis)
+        targets.append(PlacedTarget(id=k, family=family, size_m=marker_size_m, origin=origin, x_axis=x_axis,
+                                    y_axis=y_axis, bend_m=float(rng.uniform(0.0, max_bend_m))))
+    return targets
 
 
 # --- single frames ------------------------------------------------------------------
@@ -1043,6 +1076,7 @@ def render_walk(
     rng: np.random.Generator,
     degradation: str = "default",
     supersample: int = 2,
+    blur: Sequence[ExposureBlur] | None = None,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1051,19 +1085,33 @@ def render_walk(
     scene : Scene
     camera : Camera
     poses : sequence of Pose
-        Map-to-camera transforms, one per frame.
+        Map-to-camera transforms, one per frame (with `blur`, at mid-exposure).
     rng : numpy.random.Generator
         Draws each frame's degradation and noise, in frame order.
     degradation : str, optional
         Name of a `degrade.PRESETS` entry.
     supersample : int, optional
         Samples per pixel along each axis (`render`).
+    blur : sequence of ExposureBlur, optional
+        Each frame's motion blur from the camera's motion (`Walk.exposure_blur`): it
+        replaces the preset's random one, the frame's other degradations are drawn as
+        without it.
 
     Yields
     ------
     image : (height, width) ndarray of uint8
     truth : FrameTruth
+
+    Raises
+    ------
+    ValueError
+        If `blur` does not give one blur per pose.
     """
     ranges = degrade.PRESETS[degradation]
-    for pose in poses:
-        yield render_frame(scene, camera, pose, rng, ranges.sample(rng), supersample=supersample)
+    if blur is not None and len(blur) != len(poses):
+        raise ValueError(f"blur gives {len(blur)} frames for {len(poses)} poses")
+    for k, pose in enumerate(poses):
+        sampled = ranges.sample(rng)
+        if blur is not None:
+            sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
+        yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample)

@@ -1,0 +1,283 @@
+"""The card-only survey on walks that look like real filming, per walk type.
+
+Each walk type is one of the simulator's named example walks (`app.sim.examples.WALKS`):
+the bench's survey walk (two loops round the bench room), a hand-held loop near the
+middle of the bench room looking out at its walls, a hand-held pan on one spot (no
+baseline), and the same loop in a room of 10 cards spread round photo walls (one or two
+cards in most frames, or none) and round plain painted walls. For each, over several rooms
+(seeds), the walk is rendered, the detector runs on every frame as the survey job runs
+it (``Detector(fit_discs=True)``), and the survey (``app.core.survey.survey``, cards
+only) maps the room. A tracking walk through the same room is then tracked with the
+surveyed map and with the true one (as ``bench/bench_survey.py`` does).
+
+Run: ``.venv/bin/python bench/bench_walks.py [--frames 300] [--rooms 8] [--walks bench pan ...]
+[--quick]`` (markdown tables; ``--quick``: 2 rooms, 150-frame walks, 40-frame tracking
+walks).
+
+A card counts as seen in a frame when the truth has it whole in the image, facing the
+camera at cos > 0.3 and with discs over 4 px; it should be mapped when seen in at least
+10 frames whose viewing directions span at least 5 degrees. A pan's views all come from
+one point, so none of its cards qualifies: the pan's row also counts the cards seen in 10
+frames from any direction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up
+from app.core.geometry import Camera, Pose, PoseUndetermined, TargetObservation, estimate_pose, similarity_from_points
+from app.core.survey import SurveyError, survey
+from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds
+
+#: A card counts as mapped-worthy when seen in this many frames over this many degrees.
+MIN_FRAMES, MIN_SPAN_DEG = 10, 5.0
+
+#: Short names of the survey's warnings, by a phrase of their text (first match).
+WARNING_KINDS = (
+    ("could not be surveyed", "not surveyed"),
+    ("parts of the map are not seen together", "disconnected parts"),
+    ("fewer than", "few views"),
+    ("too narrow", "narrow"),
+    ("focal length", "lens"),
+    ("were ignored", "detections ignored"),
+)
+
+
+def seen(truth: FrameTruth) -> set[int]:
+    """The cards a detector should find in a frame: whole in the image, facing the camera
+    at cos > 0.3 (72 degrees), discs over 4 px."""
+    return {t.id for t in truth.targets if t.visible and t.facing_cos > 0.3 and t.disc_diameter_px > 4.0}
+
+
+def widest_angle_deg(centres: np.ndarray, point: np.ndarray) -> float:
+    """The widest angle at `point` between two of the camera centres (N, 3), degrees."""
+    rays = centres - point
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return float(np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0))))
+
+
+def cards_to_map(scene: Scene, truths: list[FrameTruth], min_span_deg: float) -> set[int]:
+    """The cards seen in at least `MIN_FRAMES` frames whose viewing directions span at
+    least `min_span_deg`."""
+    frames: dict[int, list[np.ndarray]] = {}
+    for truth in truths:
+        for card in seen(truth):
+            frames.setdefault(card, []).append(truth.pose.position)
+    centres = {t.id: t.discs.mean(axis=0) for t in scene.targets}
+    return {card for card, positions in frames.items()
+            if len(positions) >= MIN_FRAMES and widest_angle_deg(np.array(positions), centres[card]) >= min_span_deg}
+
+
+def track(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
+          camera: Camera, to_world) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Camera position error (m) of each tracking frame, nan where no pose; `to_world`
+    maps a pose of the map's frame into the room's."""
+    errors = []
+    for detected, truth in zip(frames, truths, strict=True):
+        obs = [TargetObservation(t.id, t.discs, discs[t.id]) for t in detected if t.id in discs]
+        try:
+            pose: Pose = to_world(estimate_pose(obs, camera).pose)
+            errors.append(float(np.linalg.norm(pose.position - truth.pose.position)))
+        except PoseUndetermined:
+            errors.append(np.nan)
+    return np.array(errors)
+
+
+@dataclass
+class RoomRun:
+    """One walk through one room: what the survey made of it."""
+
+    seed: int
+    n_frames: int
+    n_with_card: int  # frames in which the detector found a card
+    recall: float  # cards found / cards seen, over every frame
+    to_map: set[int]  # cards seen in MIN_FRAMES frames over MIN_SPAN_DEG
+    seen_often: set[int]  # cards seen in MIN_FRAMES frames, any directions
+    mapped: set[int] = field(default_factory=set)
+    n_registered: int = 0
+    focal_pct: float = float("nan")
+    disc_rms_mm: float = float("nan")
+    wall_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+    failure: str | None = None
+    e_true: np.ndarray = field(default_factory=lambda: np.zeros(0))  # tracking errors, m
+    e_surv: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    n_located_full: int = 0  # tracking frames located with the whole true map
+
+
+def detect_walk(detector: Detector, frames_iter, n: int, desc: str):  # type: ignore[no-untyped-def]
+    """Detections, truths and detection time (s) of rendered frames."""
+    detections, truths, detect_s = [], [], 0.0
+    for image, truth in tqdm(frames_iter, total=n, desc=desc, unit="frame", leave=False):
+        start = time.perf_counter()
+        detections.append(detector.detect(image).targets)
+        detect_s += time.perf_counter() - start
+        truths.append(truth)
+    return detections, truths, detect_s
+
+
+def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detector,
+             tracking: tuple[list, list, Scene]) -> RoomRun:  # type: ignore[type-arg]
+    """Render, detect and survey one walk; track the room's tracking walk with the map."""
+    room = walk.walk(seed, n_frames)
+    camera = walk.room.camera
+    frames, truths, detect_s = detect_walk(survey_detector, room.frames(camera), n_frames,
+                                           f"{walk.name} room {seed}")
+    should = [seen(t) for t in truths]
+    found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
+    run = RoomRun(seed, n_frames, sum(bool(f) for f in frames), found / max(sum(len(s) for s in should), 1),
+                  cards_to_map(room.scene, truths, MIN_SPAN_DEG), cards_to_map(room.scene, truths, 0.0))
+    start = time.perf_counter()
+    try:
+        result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
+    except SurveyError as e:
+        run.failure, run.wall_s = str(e), detect_s + time.perf_counter() - start
+        return run
+    run.wall_s = detect_s + time.perf_counter() - start
+    run.mapped, run.n_registered, run.warnings = {t.id for t in result.targets}, result.n_registered, result.warnings
+    run.focal_pct = 100 * (result.camera.fx / camera.fx - 1)
+    truth = {t.id: t.discs for t in room.scene.targets}
+    src = np.concatenate([t.discs for t in result.targets])
+    dst = np.concatenate([truth[t.id] for t in result.targets])
+    similar = similarity_from_points(src, dst)
+    run.disc_rms_mm = 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
+    # Tracking: the surveyed map with the surveyed camera against the true map of the same
+    # cards with the true camera, on the frames both locate; and how many frames the whole
+    # true map locates.
+    t_frames, t_truths, _ = tracking
+    surveyed = {t.id: t.discs for t in result.targets}
+    e_true = track(t_frames, t_truths, {i: truth[i] for i in surveyed}, camera, lambda p: p)
+    e_surv = track(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
+    both = np.isfinite(e_true) & np.isfinite(e_surv)
+    run.e_true, run.e_surv = e_true[both], e_surv[both]
+    run.n_located_full = int(np.isfinite(track(t_frames, t_truths, truth, camera, lambda p: p)).sum())
+    return run
+
+
+def warning_counts(runs: list[RoomRun]) -> str:
+    """How many warnings of each kind the survey gave, over the rooms."""
+    counts: Counter[str] = Counter()
+    for run in runs:
+        for text in run.warnings:
+            counts[next((name for phrase, name in WARNING_KINDS if phrase in text), "other")] += 1
+    return ", ".join(f"{name} {n}" for name, n in counts.most_common()) or "none"
+
+
+def walk_row(walk: ExampleWalk, runs: list[RoomRun]) -> str:
+    """The summary row of one walk type over its rooms."""
+    ok = [r for r in runs if r.failure is None]
+    frames = sum(r.n_frames for r in runs)
+    registered = sum(r.n_registered for r in runs)
+    to_map = sum(len(r.to_map) for r in runs)
+    mapped = sum(len(r.mapped & r.to_map) for r in runs)
+    often = sum(len(r.seen_often) for r in runs)
+    mapped_often = sum(len(r.mapped & r.seen_often) for r in runs)
+    e_true = np.concatenate([r.e_true for r in ok]) if ok else np.zeros(0)
+    e_surv = np.concatenate([r.e_surv for r in ok]) if ok else np.zeros(0)
+    located = sum(len(r.e_surv) for r in ok)
+    located_full = sum(r.n_located_full for r in runs)
+    focal = f"{max(abs(r.focal_pct) for r in ok):.3f} %" if ok else "-"
+    rms = (f"{np.median([r.disc_rms_mm for r in ok]):.2f} / {max(r.disc_rms_mm for r in ok):.2f}" if ok else "-")
+    tracking = (f"{1000 * np.median(e_true):.2f} / {1000 * np.median(e_surv):.2f} ({located} / {located_full})"
+                if len(e_true) else "-")
+    return (f"| {walk.name} | {registered} / {frames} ({100 * registered / frames:.0f} %) "
+            f"| {sum(r.n_with_card for r in runs)} | {100 * np.mean([r.recall for r in runs]):.1f} % "
+            f"| {mapped} / {to_map} | {mapped_often} / {often} | {focal} | {rms} | {tracking} "
+            f"| {np.mean([r.wall_s for r in runs]):.1f} | {len(runs) - len(ok)} "
+            f"| {np.mean([len(r.warnings) for r in ok]) if ok else 0:.1f}: {warning_counts(ok)} |")
+
+
+def describe(walk: ExampleWalk, seeds: list[int], n_frames: int) -> str:
+    """A row on how the walk moves and what its frames see, from the truth alone."""
+    speed, turn, counts, blur = [], [], [], []
+    for seed in seeds:
+        room = walk.walk(seed, n_frames)
+        s, t = walk_speeds(room.poses)
+        speed.append(s)
+        turn.append(t)
+        counts += [len(seen(frame_truth(walk.room.camera, p, room.scene))) for p in room.poses]
+        blur += [b.length_px for b in room.blur] if room.blur else []
+    share = np.bincount(np.minimum(counts, 3), minlength=4) / len(counts)
+    s, t = np.concatenate(speed), np.concatenate(turn)
+    room = walk.room
+    return (f"| {walk.name} | {room.name}: {room.n_targets} cards, {room.cards}, {room.walls} walls "
+            f"| {walk.kind}{', hand-held' if walk.shake else ''} | {np.median(s):.2f} / {s.max():.2f} "
+            f"| {np.median(t):.0f} / {t.max():.0f} | " + " / ".join(f"{100 * x:.0f}" for x in share)
+            + f" | {f'{np.median(blur):.1f} / {max(blur):.1f}' if blur else 'preset (0-2 px, half the frames)'} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--frames", type=int, default=300, help="frames of each surveyed walk (30 a second)")
+    parser.add_argument("--tracking-frames", type=int, default=100, help="frames of each room's tracking walk")
+    parser.add_argument("--rooms", type=int, default=8, help="rooms (seeds 0 .. rooms - 1) per walk type")
+    parser.add_argument("--walks", nargs="+", choices=list(WALKS), default=list(WALKS), help="walk types")
+    parser.add_argument("--quick", action="store_true", help="2 rooms, 150-frame walks, 40-frame tracking walks")
+    parser.add_argument("--details", action="store_true", help="a row per room as well")
+    args = parser.parse_args()
+    if args.quick:
+        args.rooms, args.frames, args.tracking_frames = 2, 150, 40
+    cv2.setNumThreads(1)
+    detector = Detector(classifier=load_default_classifier())
+    warm_up()  # the detector's compiled kernels: not part of the first frame's time
+    survey_detector = dataclasses.replace(detector, fit_discs=True)
+    seeds = list(range(args.rooms))
+    walks = [WALKS[name] for name in args.walks]
+    started = time.perf_counter()
+
+    tracking: dict[tuple[str, int], tuple[list, list, Scene]] = {}  # type: ignore[type-arg]
+    runs: dict[str, list[RoomRun]] = {}
+    for walk in walks:
+        for seed in seeds:
+            key = (walk.room.name, seed)
+            if key not in tracking:
+                scene = walk.room.scene(seed)
+                # Its own stream: the same tracking walk whatever the surveyed walk.
+                rng = np.random.default_rng([seed, 1])
+                poses = camera_walk(rng, walk.room.size, args.tracking_frames, "tracking")
+                t_frames, t_truths, _ = detect_walk(detector, render_walk(scene, walk.room.camera, poses, rng),
+                                                    len(poses), f"{walk.room.name} room {seed}: tracking walk")
+                tracking[key] = (t_frames, t_truths, scene)
+            runs.setdefault(walk.name, []).append(run_walk(walk, seed, args.frames, survey_detector, tracking[key]))
+
+    print(f"\nWalks: {args.frames} frames at 30 a second, rooms (seeds) {seeds[0]}-{seeds[-1]}, 640x480, "
+          f"f 820 px, k1 -0.12, cards of 0.2 m; tracking walks of {args.tracking_frames} frames; "
+          f"{time.perf_counter() - started:.0f} s in all\n")
+    print("| walk | room | kind | speed, median / max (m/s) | turn, median / max (deg/s) "
+          "| frames seeing 0 / 1 / 2 / 3+ cards (%) | motion blur, median / max (px) |")
+    print("|---|---|---|---|---|---|---|")
+    for walk in walks:
+        print(describe(walk, seeds, args.frames))
+    print("\n| walk | frames registered | frames with a card detected | cards found per card seen "
+          f"| cards mapped / seen in {MIN_FRAMES}+ frames over {MIN_SPAN_DEG:g}+ deg "
+          f"| mapped / seen in {MIN_FRAMES}+ frames | focal error, worst | disc RMS, median / worst (mm) "
+          "| tracking median, true / surveyed map (mm) (frames located: surveyed / whole true map) "
+          "| detection + survey per room (s) | surveys failed | warnings per room: kinds over all rooms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for walk in walks:
+        print(walk_row(walk, runs[walk.name]))
+    for walk in walks:
+        failures = [f"room {r.seed}: {r.failure}" for r in runs[walk.name] if r.failure]
+        for failure in failures:
+            print(f"\n{walk.name}, survey failed in {failure}")
+    if args.details:
+        print("\n| walk | room | registered | cards mapped / to map | focal error | disc RMS (mm) | s |")
+        print("|---|---|---|---|---|---|---|")
+        for walk in walks:
+            for r in runs[walk.name]:
+                print(f"| {walk.name} | {r.seed} | {r.n_registered} / {r.n_frames} "
+                      f"| {len(r.mapped & r.to_map)} / {len(r.to_map)} | {r.focal_pct:+.3f} % "
+                      f"| {r.disc_rms_mm:.2f} | {r.wall_s:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
