@@ -3,11 +3,14 @@ intrinsics from a video of the room, by structure from motion over the cards.
 
 `survey` runs the stages in order over one `SurveyState` (`reconstruction`); each stage
 is a module of its own: `lens`, `seed`, `register`, `place`, `bundle`, `prune`, `scale`,
-`result`, with the re-bundle policy in `policy` (docs/survey.md).
+`result`, with the re-bundle policy in `policy` (docs/survey.md). `points` holds the
+second kind of track the bundle adjustment takes beside the discs: natural-feature points
+with their own noise level and a robust loss.
 """
 
 from app.core.survey.bundle import BundleInfo, bundle_adjust
 from app.core.survey.lens import focal_from_cards, lens_from_cards
+from app.core.survey.points import FeatureObservations, RobustLoss
 from app.core.survey.policy import ShouldBundle, ShouldFitLens
 from app.core.survey.reconstruction import survey
 from app.core.survey.result import SurveyedTarget, SurveyResult
@@ -17,8 +20,10 @@ from app.core.survey.tracks import DISC_ERROR_PX, disc_precision
 __all__ = [
     "DISC_ERROR_PX",
     "BundleInfo",
+    "FeatureObservations",
     "Progress",
     "Reconstruction",
+    "RobustLoss",
     "ShouldBundle",
     "ShouldFitLens",
     "SurveyError",

@@ -11,17 +11,30 @@ is solved exactly every iteration.
 
 Each observation is weighted by its precision (`disc_precision`: thin discs are measured
 worse) and by Huber's loss of its whitened error (error / expected error; IRLS).
+
+Natural-feature points (`points.FeatureObservations`: a second kind of track, thousands
+of points each seen in a few frames, with their own noise level and robust loss) link
+the frames that see them, so the cameras are no longer independent given the points.
+With them, the feature points are eliminated instead (each a 3x3 block, independent
+given the cameras and the intrinsics) and the dense system over [intrinsics, discs,
+cameras] is solved exactly every iteration; the two loops over many tiny blocks (each
+observation's terms, each point's Schur complement) are compiled (`_bundle_kernels`).
+Without feature points nothing of this runs: the result is the discs' alone, to the bit.
+The benchmark against Ceres is ``bench/bench_bundle.py``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from app.core.geometry import Camera
+from app.core.survey._bundle_kernels import add_observations, eliminate_points
 from app.core.survey.cards import PAIR_UNITS, PAIRS
+from app.core.survey.points import FeatureObservations
 from app.core.survey.state import Reconstruction, Tracks, project_frame
 
 #: Huber's threshold (whitened) while the map grows: loose, since residuals of pixels are
@@ -43,6 +56,13 @@ class BundleInfo:
     weights: np.ndarray  # (N,) IRLS weights (precision times Huber's weight)
     covariance: np.ndarray | None  # marginal covariance of [intrinsics, points] when asked for
     held_frame: int  # the frame whose pose is held (the gauge)
+    # The feature points (empty when none took part):
+    feature_X: np.ndarray | None = None  # (P, 3) every feature point after the adjustment; None: none given
+    feature_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) observations used
+    feature_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (Pf,) points adjusted
+    feature_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (K, 2) px
+    feature_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) the loss's weight / sigma^2
+    feature_rms_px: float = float("nan")  # reprojection RMS (2D) of the feature observations used
 
     def disc_std(self, n_points: int) -> np.ndarray:
         """RMS 3D standard deviation of every disc, from the marginal covariance.
@@ -150,9 +170,9 @@ def _problem(rec: Reconstruction, tracks: Tracks, use: np.ndarray, free_intrinsi
         camera=rec.camera, free_intrinsics=free_intrinsics, obs=obs, frames=frames, points=points, op=op,
         uv=tracks.uv[obs], slices=slices,
         ycols=[np.r_[np.arange(n_intr), (n_intr + 3 * op[s][:, None] + np.arange(3)).ravel()] for s in slices],
-        held=int(np.argmax(counts)), n_intr=n_intr, n_y=n_intr + 3 * len(points), precision=precision,
-        root_precision=np.sqrt(precision), loss_scale=loss_scale, prior_pairs=prior_pairs, prior_len=prior_len,
-        prior_sigma=prior_sigma,
+        held=int(np.argmax(counts)) if len(counts) else -1, n_intr=n_intr, n_y=n_intr + 3 * len(points),
+        precision=precision, root_precision=np.sqrt(precision), loss_scale=loss_scale, prior_pairs=prior_pairs,
+        prior_len=prior_len, prior_sigma=prior_sigma,
     )
 
 
@@ -278,6 +298,299 @@ def _camera_steps(p: _Problem, ne: _NormalEquations, inv_list: list[np.ndarray |
     return dc
 
 
+# --- feature points: the second kind of track ---------------------------------------------
+#
+# Two frames that see one feature point are linked through it, so the cameras stay in the
+# reduced system x = [intrinsics, discs, cameras] and the feature points are eliminated.
+# The discs' normal equations are those above, their camera blocks moved to the joint
+# columns; the damping is the same (each block's diagonal, before elimination).
+
+
+@dataclass(frozen=True, eq=False)
+class _FeatureProblem:
+    """The fixed structure of the feature points' part of one bundle adjustment, over the
+    frames of both kinds of track (joint camera indices)."""
+
+    features: FeatureObservations  # the noise model
+    obs: np.ndarray  # (K,) feature observations used, sorted by frame
+    cam: np.ndarray  # (K,) each observation's camera, joint index
+    op: np.ndarray  # (K,) each observation's point, local index
+    points: np.ndarray  # (Pf,) the feature points adjusted (rows of the feature points' array)
+    uv: np.ndarray  # (K, 2) px
+    slices: list[tuple[int, slice]]  # (camera, its observations)
+    by_point: np.ndarray  # (K,) the observations sorted by point
+    bounds: np.ndarray  # (Pf + 1,) point j's observations are by_point[bounds[j]:bounds[j + 1]]
+    col: np.ndarray  # (K,) the first column of each observation's camera; -1 for the held one
+
+
+@dataclass(frozen=True, eq=False)
+class _Joint:
+    """The cameras of both kinds of track and the columns of the reduced system
+    x = [intrinsics, disc points, cameras] (the feature points eliminated)."""
+
+    frames: np.ndarray  # (C,) frames with an observation of either kind
+    dmap: np.ndarray  # (Cd,) each disc frame's joint index
+    held: int  # the held camera, joint index
+    ccol: np.ndarray  # (C,) the column of each camera's first parameter; -1 for the held one
+    n_y: int  # intrinsics + disc point parameters
+    n: int  # the reduced system's size
+
+
+@dataclass(frozen=True, eq=False)
+class _FeatureSystem:
+    """The undamped normal equations of one iteration: the reduced-side block over x with
+    the feature points' direct terms, and what eliminating the feature points needs."""
+
+    H: np.ndarray  # (n, n)
+    g: np.ndarray  # (n,)
+    W: np.ndarray  # (Pf, 3, 3) the feature point blocks
+    g_p: np.ndarray  # (Pf, 3)
+    F_c: np.ndarray  # (K, 6, 3) camera-point coupling of each observation
+    C_i: np.ndarray  # (Pf, n_intr, 3) intrinsics-point coupling of each point
+
+
+def _feature_problem(rec: Reconstruction, features: FeatureObservations, feature_X: np.ndarray,
+                     feature_use: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The feature observations that take part, sorted by frame, and the points they adjust:
+    those of registered frames and finite points, of points with two such observations at
+    least (one view leaves a point free along its ray)."""
+    use = np.ones(len(features), bool) if feature_use is None else feature_use.copy()
+    use &= rec.registered()[features.frame] & np.isfinite(feature_X[features.track]).all(axis=1)
+    use &= np.bincount(features.track[use], minlength=len(feature_X))[features.track] >= 2
+    obs = np.flatnonzero(use)
+    obs = obs[np.argsort(features.frame[obs], kind="stable")]
+    return obs, np.unique(features.track[obs])
+
+
+def _joint(p: _Problem, features: FeatureObservations, obs: np.ndarray) -> _Joint:
+    """The frames of both kinds of track and the held one: the discs' best-seen frame, as
+    without feature points (the frame that sees most feature points when no disc is seen)."""
+    frames = np.union1d(p.frames, features.frame[obs])
+    dmap = np.searchsorted(frames, p.frames)
+    if len(p.frames):
+        held = int(dmap[p.held])
+    else:
+        held = int(np.argmax(np.bincount(np.searchsorted(frames, features.frame[obs]))))
+    free = np.arange(len(frames)) != held
+    ccol = np.full(len(frames), -1)
+    ccol[free] = p.n_y + 6 * np.arange(int(free.sum()))
+    return _Joint(frames, dmap, held, ccol, p.n_y, p.n_y + 6 * int(free.sum()))
+
+
+def _feature_structure(features: FeatureObservations, obs: np.ndarray, points: np.ndarray, joint: _Joint
+                       ) -> _FeatureProblem:
+    """Where each feature observation sits: its camera, its point, its columns."""
+    cam = np.searchsorted(joint.frames, features.frame[obs])
+    op = np.searchsorted(points, features.track[obs])
+    starts = np.r_[0, np.flatnonzero(np.diff(cam)) + 1]  # obs sorted by frame: one run per camera
+    ends = np.r_[starts[1:], len(obs)]
+    slices = [(int(cam[b]), slice(b, e)) for b, e in zip(starts, ends, strict=True)]
+    by_point = np.argsort(op, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(op, minlength=len(points)))]
+    return _FeatureProblem(
+        features=features, obs=obs, cam=cam, op=op, points=points, uv=features.uv[obs], slices=slices,
+        by_point=by_point, bounds=bounds, col=joint.ccol[cam],
+    )
+
+
+def _feature_residuals(fp: _FeatureProblem, cam: Camera, cams: np.ndarray, Xf: np.ndarray) -> np.ndarray:
+    """(K, 2) the feature observations' reprojection residuals, px."""
+    out = np.empty((len(fp.obs), 2))
+    for k, s in fp.slices:
+        out[s], _ = project_frame(cam, cams[k, :3], cams[k, 3:], Xf[fp.op[s]], False)
+    return out - fp.uv
+
+
+def _feature_jacobians(fp: _FeatureProblem, cam: Camera, cams: np.ndarray, Xf: np.ndarray, n_intr: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each feature observation's Jacobian over its camera (K, 2, 6), the intrinsics
+    (K, 2, n_intr) and its point (K, 2, 3)."""
+    K = len(fp.obs)
+    J_c, J_i, J_p = np.empty((K, 2, 6)), np.empty((K, 2, n_intr)), np.empty((K, 2, 3))
+    for k, s in fp.slices:
+        n = s.stop - s.start
+        _, jac = project_frame(cam, cams[k, :3], cams[k, 3:], Xf[fp.op[s]], True)
+        assert jac is not None
+        jac = jac.reshape(n, 2, -1)
+        J_c[s] = jac[:, :, :6]
+        if n_intr:
+            J_i[s, :, 0] = jac[:, :, 6] + jac[:, :, 7]  # fx = fy = f
+            J_i[s, :, 1:3] = jac[:, :, 8:10]
+            J_i[s, :, 3:5] = jac[:, :, 10:12]
+        R, _ = cv2.Rodrigues(cams[k, :3])
+        J_p[s] = jac[:, :, 3:6] @ R  # d/dX = d/dt R  (x_cam = R X + t)
+    return J_c, J_i, J_p
+
+
+def _per_point(fp: _FeatureProblem, a: np.ndarray) -> np.ndarray:
+    """Sums of per-observation arrays over each point's observations (two at least: no
+    empty run)."""
+    return np.add.reduceat(a[fp.by_point], fp.bounds[:-1], axis=0)
+
+
+def _feature_system(p: _Problem, fp: _FeatureProblem, joint: _Joint, intr: np.ndarray, cams: np.ndarray,
+                    X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray) -> _FeatureSystem:
+    """The undamped normal equations over x, with the feature points' direct terms."""
+    cam = _camera_of(p, intr)
+    ni, n = p.n_intr, joint.n
+    H = np.zeros((n, n))
+    g = np.zeros(n)
+    # The discs: their y block as it is, their camera blocks moved to the joint columns.
+    ne = _normal_equations(p, intr, cams[joint.dmap], X, r)
+    H[: p.n_y, : p.n_y] = ne.V
+    g[: p.n_y] = ne.g_y
+    for k in range(len(p.slices)):
+        U, E, g_c = ne.U[k], ne.E[k], ne.g_c[k]
+        if U is None or E is None or g_c is None:
+            continue
+        c = slice(joint.ccol[joint.dmap[k]], joint.ccol[joint.dmap[k]] + 6)
+        H[c, c] += U
+        H[c, p.ycols[k]] += E
+        H[p.ycols[k], c] += E.T
+        g[c] += g_c
+    # The feature points' own terms.
+    J_c, J_i, J_p = _feature_jacobians(fp, cam, cams, Xf, ni)
+    K, P = len(fp.obs), len(fp.points)
+    W, g_p, F_c, C_i = np.zeros((P, 3, 3)), np.zeros((P, 3)), np.empty((K, 6, 3)), np.zeros((P, ni, 3))
+    add_observations(H, g, W, g_p, F_c, C_i, J_c, J_i, J_p, fp.features.weights(rf), rf, fp.col, fp.op)
+    return _FeatureSystem(H, g, W, g_p, F_c, C_i)
+
+
+def _damped(A: np.ndarray, lam: float) -> np.ndarray:
+    """A + lam (diag(A) + 1e-12): Levenberg-Marquardt's damping of square blocks (..., m, m)."""
+    out = A.copy()
+    i = np.arange(A.shape[-1])
+    out[..., i, i] += lam * (A[..., i, i] + 1e-12)
+    return out
+
+
+def _feature_reduced(p: _Problem, fp: _FeatureProblem, joint: _Joint, fs: _FeatureSystem, lam: float = 0.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The damped system over x with the feature points eliminated: (H, g, each feature
+    point's damped block's inverse)."""
+    H = _damped(fs.H, lam)
+    g = fs.g.copy()
+    W_inv = np.linalg.inv(_damped(fs.W, lam)) if lam > 0 else np.linalg.pinv(fs.W, hermitian=True)
+    eliminate_points(H, g, W_inv, fs.F_c, fs.C_i, fs.g_p, fp.by_point, fp.bounds, fp.col)
+    return H, g, W_inv
+
+
+def _feature_step(p: _Problem, fp: _FeatureProblem, joint: _Joint, fs: _FeatureSystem, lam: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The damped step: (dx over [intrinsics, discs, cameras], dXf over the feature points).
+
+    Raises numpy's LinAlgError when the damped reduced system is not positive definite."""
+    ni = p.n_intr
+    H, g, W_inv = _feature_reduced(p, fp, joint, fs, lam)
+    dx = -cho_solve(cho_factor(H, check_finite=False), g, check_finite=False)
+    if not np.isfinite(dx).all():
+        raise np.linalg.LinAlgError("the damped reduced system is singular")
+    # Back-substitution: each feature point's step given the cameras' and intrinsics'.
+    dc = np.zeros((len(joint.frames), 6))
+    dc[joint.ccol >= 0] = dx[joint.ccol[joint.ccol >= 0][:, None] + np.arange(6)]
+    coupling = _per_point(fp, (fs.F_c.transpose(0, 2, 1) @ dc[fp.cam][:, :, None])[:, :, 0])
+    if ni:
+        coupling += (fs.C_i.transpose(0, 2, 1) @ dx[:ni])
+    dXf = -(W_inv @ (fs.g_p + coupling)[:, :, None])[:, :, 0]
+    return dx, dXf
+
+
+def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObservations, feature_X: np.ndarray,
+                          obs: np.ndarray, points: np.ndarray, max_iterations: int, tolerance: float,
+                          with_covariance: bool) -> tuple[Reconstruction, BundleInfo]:
+    """`bundle_adjust` with feature points: Levenberg-Marquardt over [intrinsics, discs,
+    cameras] with the feature points eliminated."""
+    joint = _joint(p, features, obs)
+    fp = _feature_structure(features, obs, points, joint)
+    ni = p.n_intr
+    intr = np.array([rec.camera.fx, rec.camera.cx, rec.camera.cy, rec.camera.dist[0], rec.camera.dist[1]])
+    cams = np.c_[rec.rvec[joint.frames], rec.tvec[joint.frames]]
+    X = rec.X[p.points].copy()
+    Xf = feature_X[points].copy()
+    free = joint.ccol >= 0
+    free_cols = joint.ccol[free][:, None] + np.arange(6)
+
+    def evaluate(intr: np.ndarray, cams: np.ndarray, X: np.ndarray, Xf: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+        cam = _camera_of(p, intr)
+        r = _residuals(p, cam, cams[joint.dmap], X)
+        rf = _feature_residuals(fp, cam, cams, Xf)
+        return r, rf, _robust_cost(p, r, _prior_residuals(p, X)) + float(features.cost(rf).sum())
+
+    r, rf, cost = evaluate(intr, cams, X, Xf)
+    lam = 1e-4
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        fs = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf)
+        improved = False
+        for _ in range(12):
+            try:
+                dx, dXf = _feature_step(p, fp, joint, fs, lam)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            intr_new = intr + dx[:5] if ni else intr.copy()
+            X_new = X + dx[ni : joint.n_y].reshape(-1, 3)
+            cams_new = cams.copy()
+            cams_new[free] += dx[free_cols]
+            Xf_new = Xf + dXf
+            try:
+                r_new, rf_new, cost_new = evaluate(intr_new, cams_new, X_new, Xf_new)
+            except ValueError:  # an impossible camera (f <= 0): a shorter step
+                lam *= 10
+                continue
+            if np.isfinite(cost_new) and cost_new < cost:
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            break
+        gain = cost - cost_new
+        intr, X, cams, Xf, r, rf, cost = intr_new, X_new, cams_new, Xf_new, r_new, rf_new, cost_new
+        lam = max(lam / 10, 1e-12)
+        step = max(np.abs(dx).max() if len(dx) else 0.0, np.abs(dXf).max() if dXf.size else 0.0)
+        if gain < tolerance * max(cost, 1e-12) or step < 1e-12:
+            break
+    covariance = None
+    if with_covariance and len(p.points):
+        covariance = _feature_covariance(p, fp, joint, intr, cams, X, Xf, r, rf)
+    out = Reconstruction(_camera_of(p, intr), rec.rvec.copy(), rec.tvec.copy(), rec.X.copy())
+    out.rvec[joint.frames], out.tvec[joint.frames] = cams[:, :3], cams[:, 3:]
+    out.X[p.points] = X
+    adjusted = feature_X.copy()
+    adjusted[points] = Xf
+    info = BundleInfo(
+        iterations=iterations, cost=cost, rms_px=_rms(r), obs=p.obs, points=p.points, n_intr=ni, residuals=r,
+        weights=_weights(p, r), covariance=covariance, held_frame=int(joint.frames[joint.held]),
+        feature_X=adjusted, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
+        feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
+    )
+    return out, info
+
+
+def _feature_covariance(p: _Problem, fp: _FeatureProblem, joint: _Joint, intr: np.ndarray, cams: np.ndarray,
+                        X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray) -> np.ndarray:
+    """Marginal covariance of [intrinsics, disc points] with feature points: the cameras
+    and feature points eliminated from the undamped system."""
+    fs = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf)
+    H, _, _ = _feature_reduced(p, fp, joint, fs)
+    n_y = joint.n_y
+    H_yc, H_cc = H[:n_y, n_y:], H[n_y:, n_y:]
+    try:
+        S = H[:n_y, :n_y] - H_yc @ cho_solve(cho_factor(H_cc, check_finite=False), H_yc.T, check_finite=False)
+    except np.linalg.LinAlgError:  # a camera the observations leave free in some direction
+        S = H[:n_y, :n_y] - H_yc @ np.linalg.pinv(H_cc, rcond=1e-12, hermitian=True) @ H_yc.T
+    n_obs = len(p.obs) + len(fp.obs)
+    dof = max(2 * n_obs - 6 * len(joint.frames) - p.n_y - 3 * len(fp.points) + 6, 1)
+    chi2 = float((_weights(p, r)[:, None] * r**2).sum() + (fp.features.weights(rf)[:, None] * rf**2).sum())
+    return np.linalg.pinv(S, rcond=1e-12, hermitian=True) * (chi2 / dof)
+
+
+def _rms(r: np.ndarray) -> float:
+    """2D RMS of residuals (N, 2), px; nan for none."""
+    return float(np.sqrt((r**2).sum(axis=1).mean())) if len(r) else float("nan")
+
+
 def bundle_adjust(
     rec: Reconstruction,
     tracks: Tracks,
@@ -287,12 +600,23 @@ def bundle_adjust(
     loss_scale: float = GROWTH_LOSS_SCALE,
     max_iterations: int = 100,
     with_covariance: bool = False,
+    features: FeatureObservations | None = None,
+    feature_X: np.ndarray | None = None,
+    feature_use: np.ndarray | None = None,
+    tolerance: float = 1e-12,
 ) -> tuple[Reconstruction, BundleInfo]:
     """Robust sparse bundle adjustment (Levenberg-Marquardt, cameras eliminated).
 
     Adjusts [f, cx, cy, k1, k2] when ``free_intrinsics``, the pose (rvec, t) of every
     frame with an observation but one (the best-seen frame is held: it fixes the gauge),
     and the 3D point of every disc with an observation.
+
+    With feature points (a second kind of track: ``features`` and their points
+    ``feature_X``), the frames they are seen in and every feature point seen in two of
+    them at least are adjusted too, each observation weighted by the features' own
+    noise level and robust loss; the feature points are then eliminated instead of the
+    cameras. Without any that take part, the result is that of the discs alone, to the
+    bit.
 
     Parameters
     ----------
@@ -312,17 +636,36 @@ def bundle_adjust(
         Huber's threshold on the whitened error: the loss is quadratic up to it.
     max_iterations : int
         At most this many iterations (0: only measure the start).
+    tolerance : float
+        Stop when an iteration lowers the cost by less than this fraction of it (the
+        default: when it gains nothing within rounding).
     with_covariance : bool
         Also compute the marginal covariance of the intrinsics and points.
+    features : FeatureObservations, optional
+        Observations of feature points, with their noise level and robust loss.
+    feature_X : (P, 3) ndarray, optional
+        The feature points at the start (nan: not triangulated); needed with
+        ``features``, not changed.
+    feature_use : (len(features),) ndarray of bool, optional
+        The feature observations to use (default: all; those of unregistered frames or
+        nan points are left out anyway).
 
     Returns
     -------
     rec : Reconstruction
         The adjusted reconstruction (a new one).
     info : BundleInfo
-        Iterations, cost, residuals, weights and covariance at the end.
+        Iterations, cost, residuals, weights and covariance at the end; the adjusted
+        feature points in ``info.feature_X``.
     """
     p = _problem(rec, tracks, use, free_intrinsics, card_prior, loss_scale)
+    if features is not None:
+        if feature_X is None:
+            raise ValueError("feature observations need their points, feature_X")
+        f_obs, f_points = _feature_problem(rec, features, feature_X, feature_use)
+        if len(f_obs):
+            return _adjust_with_features(rec, p, features, feature_X, f_obs, f_points, max_iterations, tolerance,
+                                         with_covariance)
     intr = np.array([rec.camera.fx, rec.camera.cx, rec.camera.cy, rec.camera.dist[0], rec.camera.dist[1]])
     cams = np.c_[rec.rvec[p.frames], rec.tvec[p.frames]]
     X = rec.X[p.points].copy()
@@ -364,7 +707,7 @@ def bundle_adjust(
         intr, X, cams, r, cost = intr_new, X_new, cams_new, r_new, cost_new
         lam = max(lam / 10, 1e-12)
         step = max(np.abs(dy).max() if len(dy) else 0.0, np.abs(dc).max() if dc.size else 0.0)
-        if gain < 1e-12 * max(cost, 1e-12) or step < 1e-12:
+        if gain < tolerance * max(cost, 1e-12) or step < 1e-12:
             break
     covariance = None
     if with_covariance and len(p.points):
@@ -382,6 +725,6 @@ def bundle_adjust(
     info = BundleInfo(
         iterations=iterations, cost=cost, rms_px=float(np.sqrt((r**2).sum(axis=1).mean())), obs=p.obs,
         points=p.points, n_intr=p.n_intr, residuals=r, weights=_weights(p, r), covariance=covariance,
-        held_frame=int(p.frames[p.held]),
+        held_frame=int(p.frames[p.held]), feature_X=None if feature_X is None else feature_X.copy(),
     )
     return out, info

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
+import cv2
 import numpy as np
 
 from app.core.survey.bundle import bundle_adjust, camera_from_intrinsics
 from app.core.survey.cards import PAIR_UNITS, PAIRS
-from app.core.survey.state import SurveyState
+from app.core.survey.points import FeatureObservations, RobustLoss
+from app.core.survey.state import Reconstruction, SurveyState
+from app.sim.examples import ExampleRoom
 
 PRIOR = (0.2, 1e-5)  # the printed card, 10 um
 
@@ -115,3 +119,222 @@ def test_covariance_gives_each_disc_an_uncertainty(true_state: SurveyState) -> N
     # Without the covariance: no uncertainty.
     _, plain = bundle_adjust(rec, true_state.tracks, use, False, PRIOR, max_iterations=0)
     assert plain.covariance is None and np.isnan(plain.disc_std(len(rec.X))).all()
+
+
+# --- feature points: the second kind of track ---------------------------------------------
+
+
+def _wall_features(state: SurveyState, room: ExampleRoom, rng: np.random.Generator, n: int, sigma_px: float = 0.5,
+                   loss: RobustLoss = RobustLoss.CAUCHY) -> tuple[FeatureObservations, np.ndarray]:
+    """Points on the small room's walls (from its geometry, not from the survey) and their
+    exact images in a run of up to 6 registered frames that see them (in the lens's field,
+    2 px inside the image, on a wall facing the camera), kept when those views are 2
+    degrees apart at least: (observations, true points)."""
+    w, d, h = room.size
+    rec, camera = state.reconstruction, state.reconstruction.camera
+    frames = np.flatnonzero(rec.registered())
+    m = 20 * n
+    wall = rng.integers(4, size=m)
+    along, z = rng.uniform(0.1, 0.9, m), rng.uniform(0.2, h - 0.2, m)
+    X = np.select([wall[:, None] == k for k in range(3)],
+                  [np.c_[along * w, 0 * z, z], np.c_[along * w, d + 0 * z, z], np.c_[0 * z, along * d, z]],
+                  np.c_[w + 0 * z, along * d, z])
+    inward = np.array([[0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]], float)[wall]
+    seen = np.zeros((len(frames), m), bool)
+    uv = np.zeros((len(frames), m, 2))
+    for i, f in enumerate(frames):
+        pose = rec.pose(f)
+        ray = pose.position - X
+        uv[i] = cv2.projectPoints(X.reshape(-1, 1, 3), rec.rvec[f], rec.tvec[f], camera.K, camera.dist)[0][:, 0]
+        facing = (ray * inward).sum(axis=1) > 0.2 * np.linalg.norm(ray, axis=1)
+        inside = ((uv[i] >= 2) & (uv[i] <= [camera.width - 3, camera.height - 3])).all(axis=1)
+        seen[i] = camera.in_field(pose.transform(X)) & facing & inside
+    rows, points = [], []
+    for j in range(m):
+        views = np.flatnonzero(seen[:, j])
+        start = int(rng.integers(0, max(len(views) - 5, 1)))
+        views = views[start : start + 6]
+        rays = X[j] - np.array([rec.pose(f).position for f in frames[views]]).reshape(-1, 3)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        if len(views) < 2 or np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1, 1))) < 2.0:
+            continue
+        rows += [(frames[i], len(points), uv[i, j]) for i in views]
+        points.append(X[j])
+        if len(points) == n:
+            break
+    assert len(points) == n
+    rows.sort(key=lambda row: (row[0], row[1]))
+    features = FeatureObservations(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
+                                   np.array([r[2] for r in rows]), sigma_px=sigma_px, loss=loss)
+    return features, np.array(points)
+
+
+def test_feature_points_join_the_adjustment_and_it_recovers_poses_and_points(true_state: SurveyState,
+                                                                             room: ExampleRoom) -> None:
+    truth = copy.deepcopy(true_state.reconstruction)
+    rng = np.random.default_rng(11)
+    features, points = _wall_features(true_state, room, rng, 150)
+    _disturb(true_state, rng)
+    start_points = points + rng.normal(0, 0.02, points.shape)
+    given = start_points.copy()
+    use = true_state.usable.repeat(4)
+    out, info = bundle_adjust(true_state.reconstruction, true_state.tracks, use, False, PRIOR, features=features,
+                              feature_X=start_points)
+    np.testing.assert_array_equal(start_points, given)  # the start is left as it was
+    # The held frame and the card prior fix the gauge: the optimum is the truth, feature
+    # points included.
+    np.testing.assert_allclose(out.X, truth.X, atol=1e-9)
+    np.testing.assert_allclose(out.rvec, truth.rvec, atol=1e-9)
+    np.testing.assert_allclose(out.tvec, truth.tvec, atol=1e-9)
+    assert info.feature_X is not None
+    np.testing.assert_allclose(info.feature_X, points, atol=1e-7)
+    assert len(info.feature_obs) == len(features) and len(info.feature_points) == len(points)
+    assert info.rms_px < 1e-9 and info.feature_rms_px < 1e-7 and 0 < info.iterations < 100
+    assert info.held_frame == _held(true_state)  # the same gauge as the discs alone
+
+
+def test_feature_points_and_the_lens(true_state: SurveyState, room: ExampleRoom) -> None:
+    """The intrinsics move with feature points too, and the covariance is that of the
+    discs given everything else."""
+    camera = true_state.reconstruction.camera
+    rng = np.random.default_rng(12)
+    features, points = _wall_features(true_state, room, rng, 100)
+    _disturb(true_state, rng)
+    true_state.reconstruction.camera = camera_from_intrinsics(np.array([612.0, 324.0, 236.0, -0.08, 0.01]), 640, 480)
+    use = true_state.usable.repeat(4)
+    out, info = bundle_adjust(true_state.reconstruction, true_state.tracks, use, True, PRIOR, features=features,
+                              feature_X=points + rng.normal(0, 0.02, points.shape), with_covariance=True)
+    assert info.n_intr == 5 and info.rms_px < 1e-9
+    np.testing.assert_allclose(out.camera.K, camera.K, atol=1e-6)
+    np.testing.assert_allclose(out.camera.dist, camera.dist, atol=1e-9)
+    assert info.covariance is not None and info.covariance.shape == (5 + 3 * len(info.points),) * 2
+    assert np.isfinite(info.disc_std(len(out.X))).all()
+
+
+def test_the_robust_loss_keeps_wrong_matches_from_moving_the_map(true_state: SurveyState, room: ExampleRoom) -> None:
+    """A handful of feature observations 20-40 px off (wrong matches) among 0.5 px noisy
+    ones barely move the map under either robust loss, and pull it off in least squares."""
+    rng = np.random.default_rng(13)
+    features, points = _wall_features(true_state, room, rng, 150)
+    noisy = features.uv + rng.normal(0, 0.5, features.uv.shape)
+    wrong = rng.choice(len(features), 5, replace=False)
+    angle = rng.uniform(0, 2 * np.pi, 5)
+    bad = noisy.copy()
+    bad[wrong] += rng.uniform(20, 40, 5)[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    rec, tracks, use = true_state.reconstruction, true_state.tracks, true_state.usable.repeat(4)
+    frames = np.flatnonzero(rec.registered())
+
+    def moved(loss: RobustLoss, scale: float) -> tuple[float, float, np.ndarray]:
+        """How far the wrong matches move the discs and the camera positions (m), and
+        their weights relative to a good observation's."""
+        clean = dataclasses.replace(features, uv=noisy, loss=loss, loss_scale=scale)
+        a, _ = bundle_adjust(rec, tracks, use, False, PRIOR, features=clean, feature_X=points, tolerance=1e-9)
+        b, info = bundle_adjust(rec, tracks, use, False, PRIOR, features=dataclasses.replace(clean, uv=bad),
+                                feature_X=points, tolerance=1e-9)
+        centres = [np.linalg.norm(a.pose(f).position - b.pose(f).position) for f in frames]
+        relative = info.feature_weights[np.isin(info.feature_obs, wrong)] * features.sigma_px**2
+        return float(np.abs(a.X - b.X).max()), float(max(centres)), relative
+
+    plain = moved(RobustLoss.HUBER, 1e6)
+    assert plain[0] > 2e-4 and plain[1] > 5e-3  # least squares: discs 0.2 mm off and more, cameras 5 mm
+    huber, cauchy = moved(RobustLoss.HUBER, 2.5), moved(RobustLoss.CAUCHY, 2.5)
+    assert huber[0] < 0.2 * plain[0] and huber[1] < 0.2 * plain[1] and (huber[2] < 0.1).all()
+    assert cauchy[0] < 0.1 * plain[0] and cauchy[1] < 0.1 * plain[1] and (cauchy[2] < 0.005).all()
+
+
+def test_without_feature_points_the_result_is_the_discs_alone(true_state: SurveyState, room: ExampleRoom) -> None:
+    """No feature points, an empty set, or none usable: the same arrays, to the bit."""
+    rng = np.random.default_rng(14)
+    features, points = _wall_features(true_state, room, rng, 20)
+    _disturb(true_state, rng)
+    true_state.reconstruction.camera = camera_from_intrinsics(np.array([612.0, 324.0, 236.0, -0.08, 0.01]), 640, 480)
+    rec, tracks, use = true_state.reconstruction, true_state.tracks, true_state.usable.repeat(4)
+    runs = [
+        bundle_adjust(rec, tracks, use, True, PRIOR, max_iterations=20, with_covariance=True),
+        bundle_adjust(rec, tracks, use, True, PRIOR, max_iterations=20, with_covariance=True,
+                      features=FeatureObservations.empty(), feature_X=np.zeros((0, 3))),
+        bundle_adjust(rec, tracks, use, True, PRIOR, max_iterations=20, with_covariance=True,
+                      features=features, feature_X=points, feature_use=np.zeros(len(features), bool)),
+    ]
+    (ref, ref_info), others = runs[0], runs[1:]
+    for out, info in others:
+        np.testing.assert_array_equal(out.X, ref.X)
+        np.testing.assert_array_equal(out.rvec, ref.rvec)
+        np.testing.assert_array_equal(out.tvec, ref.tvec)
+        np.testing.assert_array_equal(out.camera.K, ref.camera.K)
+        np.testing.assert_array_equal(out.camera.dist, ref.camera.dist)
+        np.testing.assert_array_equal(info.residuals, ref_info.residuals)
+        np.testing.assert_array_equal(info.weights, ref_info.weights)
+        np.testing.assert_array_equal(info.covariance, ref_info.covariance)
+        assert (info.cost, info.iterations, info.held_frame) == (ref_info.cost, ref_info.iterations,
+                                                                 ref_info.held_frame)
+        assert len(info.feature_obs) == 0
+    assert ref_info.feature_X is None
+    np.testing.assert_array_equal(others[1][1].feature_X, points)  # given back as they were
+
+
+def test_the_step_is_that_of_the_whole_problem(true_state: SurveyState, room: ExampleRoom) -> None:
+    """Eliminating the feature points gives the step of the damped normal equations of
+    every parameter at once, built here from finite differences of the whitened
+    residuals (a few frames; intrinsics free; no robust loss in play)."""
+    rng = np.random.default_rng(15)
+    features, points = _wall_features(true_state, room, rng, 100, loss=RobustLoss.HUBER)
+    features = dataclasses.replace(features, loss_scale=1e9)
+    _disturb(true_state, rng)
+    rec, tracks = true_state.reconstruction, true_state.tracks
+    frames = np.flatnonzero(rec.registered())[10:18]
+    use = np.isin(tracks.frame, frames)
+    f_use = np.isin(features.frame, frames)
+    f_use &= np.bincount(features.track[f_use], minlength=len(points))[features.track] >= 2
+    start_points = points + rng.normal(0, 0.01, points.shape)
+    out, info = bundle_adjust(rec, tracks, use, True, PRIOR, loss_scale=1e9, max_iterations=1, features=features,
+                              feature_X=start_points, feature_use=f_use)
+    free = frames[frames != info.held_frame]
+    d_points, f_points = info.points, info.feature_points
+    intr0 = np.array([rec.camera.fx, rec.camera.cx, rec.camera.cy, rec.camera.dist[0], rec.camera.dist[1]])
+    whole = [t for t in np.unique(d_points // 4) if np.isin(4 * t + np.arange(4), d_points).all()]
+    n_d, n_c = 3 * len(d_points), 6 * len(free)
+
+    def unpack(x: np.ndarray) -> tuple[Reconstruction, np.ndarray]:
+        r = copy.deepcopy(rec)
+        r.camera = camera_from_intrinsics(intr0 + x[:5], 640, 480)
+        r.X[d_points] += x[5 : 5 + n_d].reshape(-1, 3)
+        r.rvec[free] += x[5 + n_d : 5 + n_d + n_c].reshape(-1, 6)[:, :3]
+        r.tvec[free] += x[5 + n_d : 5 + n_d + n_c].reshape(-1, 6)[:, 3:]
+        fX = start_points.copy()
+        fX[f_points] += x[5 + n_d + n_c :].reshape(-1, 3)
+        return r, fX
+
+    def whitened(x: np.ndarray) -> np.ndarray:
+        r, fX = unpack(x)
+        out = []
+        for f in frames:
+            i = np.flatnonzero(use & (tracks.frame == f))
+            p, _ = cv2.projectPoints(r.X[tracks.point[i]].reshape(-1, 1, 3), r.rvec[f], r.tvec[f], r.camera.K,
+                                     r.camera.dist)
+            out.append(((p.reshape(-1, 2) - tracks.uv[i]) * np.sqrt(tracks.precision[i])[:, None]).ravel())
+            k = np.flatnonzero(f_use & (features.frame == f))
+            p, _ = cv2.projectPoints(fX[features.track[k]].reshape(-1, 1, 3), r.rvec[f], r.tvec[f], r.camera.K,
+                                     r.camera.dist)
+            out.append(((p.reshape(-1, 2) - features.uv[k]) / features.sigma_px).ravel())
+        for t in whole:
+            d = np.linalg.norm(r.X[4 * t + PAIRS[:, 0]] - r.X[4 * t + PAIRS[:, 1]], axis=1)
+            out.append((d - PAIR_UNITS * PRIOR[0]) / PRIOR[1])
+        return np.concatenate(out)
+
+    n = 5 + n_d + n_c + 3 * len(f_points)
+    e = whitened(np.zeros(n))
+    J = np.empty((len(e), n))
+    for j in range(n):
+        h = np.zeros(n)
+        h[j] = 1e-4 if j < 3 else 1e-7  # f, cx, cy in pixels
+        J[:, j] = (whitened(h) - whitened(-h)) / (2 * h[j])
+    H = J.T @ J
+    step = -np.linalg.solve(H + 1e-4 * np.diag(np.diag(H) + 1e-12), J.T @ e)  # the first iteration's damping
+    expected, expected_points = unpack(step)
+    scale = np.abs(step).max()
+    np.testing.assert_allclose(out.X[d_points], expected.X[d_points], atol=1e-6 * scale)
+    np.testing.assert_allclose(out.rvec[free], expected.rvec[free], atol=1e-6 * scale)
+    np.testing.assert_allclose(out.tvec[free], expected.tvec[free], atol=1e-6 * scale)
+    np.testing.assert_allclose(info.feature_X[f_points], expected_points[f_points], atol=1e-6 * scale)
+    np.testing.assert_allclose(out.camera.fx, intr0[0] + step[0], atol=1e-6 * abs(step[0]))

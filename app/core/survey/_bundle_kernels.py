@@ -1,0 +1,128 @@
+"""Compiled (numba) kernels of the bundle adjustment with feature points (`bundle`):
+the feature observations' normal equations, and eliminating the feature points from them.
+
+Each observation adds a few tiny (6x6, 6x3, 3x3) products, and eliminating a point seen
+in k frames adds k^2 6x6 blocks to the reduced system: hundreds of thousands of tiny
+products for a survey with thousands of feature points, which numpy can only batch
+through temporaries several times the size of the result. One loop over the
+observations, and one over the points, does each in place. Flags as the detector's
+kernels (`app.core.detection._numba`): cached, ``nogil``, ``error_model="numpy"``, no
+``fastmath``; `warm_up` compiles the kernels (or loads them from the cache).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def eliminate_points(H: np.ndarray, g: np.ndarray, W_inv: np.ndarray, F_c: np.ndarray, C_i: np.ndarray,
+                     g_p: np.ndarray, by_point: np.ndarray, bounds: np.ndarray, col: np.ndarray) -> None:
+    """Subtract every feature point's Schur complement from the reduced system, in place.
+
+    For point j with block W_j, camera couplings F_a (6x3, one per observation a),
+    intrinsics coupling C_j (n_intr x 3) and gradient g_j: H -= B W_j^-1 B^T and
+    g -= B W_j^-1 g_j, B being the point's column of couplings at the cameras' and the
+    intrinsics' rows (intrinsics first, at rows 0 .. n_intr - 1).
+
+    ``H`` (n, n), ``g`` (n,); ``W_inv`` (P, 3, 3) the (damped) blocks' inverses; ``F_c``
+    (K, 6, 3); ``C_i`` (P, n_intr, 3); ``g_p`` (P, 3); ``by_point`` (K,) the observations
+    sorted by point, point j's at ``by_point[bounds[j]:bounds[j + 1]]``; ``col`` (K,)
+    each observation's camera's first row, -1 for the held camera (not in the system).
+    """
+    n_intr = C_i.shape[1]
+    G = np.empty((6, 3))
+    CW = np.empty((n_intr, 3))
+    for j in range(W_inv.shape[0]):
+        Wj = W_inv[j]
+        for m in range(n_intr):
+            for t in range(3):
+                CW[m, t] = C_i[j, m, 0] * Wj[0, t] + C_i[j, m, 1] * Wj[1, t] + C_i[j, m, 2] * Wj[2, t]
+        for m in range(n_intr):
+            g[m] -= CW[m, 0] * g_p[j, 0] + CW[m, 1] * g_p[j, 1] + CW[m, 2] * g_p[j, 2]
+            for q in range(n_intr):
+                H[m, q] -= CW[m, 0] * C_i[j, q, 0] + CW[m, 1] * C_i[j, q, 1] + CW[m, 2] * C_i[j, q, 2]
+        for ia in range(bounds[j], bounds[j + 1]):
+            a = by_point[ia]
+            ca = col[a]
+            if ca < 0:
+                continue
+            for i in range(6):
+                for t in range(3):
+                    G[i, t] = F_c[a, i, 0] * Wj[0, t] + F_c[a, i, 1] * Wj[1, t] + F_c[a, i, 2] * Wj[2, t]
+            for i in range(6):
+                g[ca + i] -= G[i, 0] * g_p[j, 0] + G[i, 1] * g_p[j, 1] + G[i, 2] * g_p[j, 2]
+                for m in range(n_intr):
+                    v = G[i, 0] * C_i[j, m, 0] + G[i, 1] * C_i[j, m, 1] + G[i, 2] * C_i[j, m, 2]
+                    H[ca + i, m] -= v
+                    H[m, ca + i] -= v
+            for ib in range(bounds[j], bounds[j + 1]):
+                b = by_point[ib]
+                cb = col[b]
+                if cb < 0:
+                    continue
+                for i in range(6):
+                    for k in range(6):
+                        H[ca + i, cb + k] -= G[i, 0] * F_c[b, k, 0] + G[i, 1] * F_c[b, k, 1] + G[i, 2] * F_c[b, k, 2]
+
+
+@njit(**_JIT)
+def add_observations(H: np.ndarray, g: np.ndarray, W: np.ndarray, g_p: np.ndarray, F_c: np.ndarray,
+                     C_i: np.ndarray, J_c: np.ndarray, J_i: np.ndarray, J_p: np.ndarray, w: np.ndarray,
+                     r: np.ndarray, col: np.ndarray, op: np.ndarray) -> None:
+    """Add every feature observation's terms to the normal equations, in place.
+
+    Observation a (Jacobians ``J_c`` (K, 2, 6) over its camera, ``J_i`` (K, 2, n_intr)
+    over the intrinsics, ``J_p`` (K, 2, 3) over its point ``op[a]``; weight ``w[a]``;
+    residual ``r[a]`` (2,)) adds J^T w J and J^T w r to the camera's block and the
+    intrinsics' (``H`` (n, n), ``g`` (n,): intrinsics at rows 0 .. n_intr - 1, the camera
+    at ``col[a]``, none for -1, the held camera) and to its point's (``W`` (P, 3, 3),
+    ``g_p`` (P, 3)), and sets its couplings: ``F_c[a]`` = J_c^T w J_p (6, 3), and adds
+    J_i^T w J_p to ``C_i[op[a]]`` (n_intr, 3).
+    """
+    n_intr = J_i.shape[2]
+    for a in range(J_c.shape[0]):
+        wa = w[a]
+        j = op[a]
+        c = col[a]
+        for i in range(6):
+            for t in range(3):
+                F_c[a, i, t] = wa * (J_c[a, 0, i] * J_p[a, 0, t] + J_c[a, 1, i] * J_p[a, 1, t])
+        for s in range(3):
+            g_p[j, s] += wa * (J_p[a, 0, s] * r[a, 0] + J_p[a, 1, s] * r[a, 1])
+            for t in range(3):
+                W[j, s, t] += wa * (J_p[a, 0, s] * J_p[a, 0, t] + J_p[a, 1, s] * J_p[a, 1, t])
+        for m in range(n_intr):
+            g[m] += wa * (J_i[a, 0, m] * r[a, 0] + J_i[a, 1, m] * r[a, 1])
+            for t in range(3):
+                C_i[j, m, t] += wa * (J_i[a, 0, m] * J_p[a, 0, t] + J_i[a, 1, m] * J_p[a, 1, t])
+            for q in range(n_intr):
+                H[m, q] += wa * (J_i[a, 0, m] * J_i[a, 0, q] + J_i[a, 1, m] * J_i[a, 1, q])
+        if c < 0:
+            continue
+        for i in range(6):
+            g[c + i] += wa * (J_c[a, 0, i] * r[a, 0] + J_c[a, 1, i] * r[a, 1])
+            for k in range(6):
+                H[c + i, c + k] += wa * (J_c[a, 0, i] * J_c[a, 0, k] + J_c[a, 1, i] * J_c[a, 1, k])
+            for m in range(n_intr):
+                v = wa * (J_c[a, 0, i] * J_i[a, 0, m] + J_c[a, 1, i] * J_i[a, 1, m])
+                H[c + i, m] += v
+                H[m, c + i] += v
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) `eliminate_points` on tiny inputs, with the
+    argument types the bundle adjustment passes."""
+    H, g = np.zeros((11, 11)), np.zeros(11)
+    W_inv = np.broadcast_to(np.eye(3), (1, 3, 3)).copy()
+    F_c = np.ones((2, 6, 3))
+    idx = np.arange(2)
+    C_i, g_p = np.ones((1, 5, 3)), np.ones((1, 3))
+    eliminate_points(H, g, W_inv, F_c, C_i, g_p, idx, np.array([0, 2]), idx * 0 + 5)
+    for n_intr in (5, 0):
+        add_observations(H, g, W_inv.copy(), g_p, F_c, C_i[:, :n_intr].copy(), np.ones((2, 2, 6)),
+                         np.ones((2, 2, n_intr)), np.ones((2, 2, 3)), np.ones(2), np.ones((2, 2)), idx * 0 + 5, idx * 0)
+        eliminate_points(H, g, W_inv, F_c, C_i[:, :n_intr].copy(), g_p, idx, np.array([0, 2]), idx * 0 + 5)
