@@ -8,6 +8,7 @@ second kind of track the bundle adjustment takes beside the discs: natural-featu
 with their own noise level and a robust loss.
 """
 
+from app.core.survey.advice import MapWarning, WarningKind
 from app.core.survey.bundle import BundleInfo, bundle_adjust
 from app.core.survey.lens import focal_from_cards, lens_from_cards
 from app.core.survey.points import FeatureObservations, RobustLoss
@@ -21,6 +22,7 @@ __all__ = [
     "DISC_ERROR_PX",
     "BundleInfo",
     "FeatureObservations",
+    "MapWarning",
     "Progress",
     "Reconstruction",
     "RobustLoss",
@@ -31,6 +33,7 @@ __all__ = [
     "SurveyStage",
     "SurveyState",
     "SurveyedTarget",
+    "WarningKind",
     "bundle_adjust",
     "disc_precision",
     "focal_from_cards",

@@ -7,10 +7,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from app.core.geometry import Camera, Pose
+from app.core.survey.advice import MapWarning, TargetViews, map_advice
 from app.core.survey.bundle import BundleInfo
 from app.core.survey.cards import max_angle_deg
 from app.core.survey.place import MIN_BASELINE_DEG
@@ -31,6 +30,7 @@ class SurveyedTarget:
     std_m: np.ndarray  # (4,) RMS 3D position uncertainty of each disc (1 sigma)
     n_views: int  # registered frames in which the target was used
     baseline_deg: float  # widest angle between two of those views, at the target
+    distance_m: float = float("nan")  # median distance of those views' camera centres to the target
 
     def to_dict(self) -> dict[str, Any]:
         """The target's entry in the map document.
@@ -173,53 +173,60 @@ def surveyed_views(state: SurveyState) -> SurveyedViews:
     return SurveyedViews(used, n_rejected, n_views, targets)
 
 
-def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews) -> list[str]:
-    """Warnings about weak parts of the map.
+def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews,
+                  camera_centres: np.ndarray | None = None) -> list[MapWarning]:
+    """The typed warnings about weak parts of the map (`advice.map_advice`).
 
     Parameters
     ----------
     results : list of SurveyedTarget
-        The surveyed targets.
+        The surveyed targets, in the order of ``surveyed.targets``.
     tracks : Tracks
         The observations.
     views : Views
         Every view.
     surveyed : SurveyedViews
         The views the map rests on.
+    camera_centres : (F, 3) ndarray, optional
+        The registered cameras' centres; without them no pure pan is told.
+
+    Returns
+    -------
+    list of MapWarning
+        Each with its kind, the cards it names and its text.
+    """
+    targets = [TargetViews(r.id, r.discs.mean(axis=0), r.n_views, r.baseline_deg, r.distance_m) for r in results]
+    centres = np.zeros((0, 3)) if camera_centres is None else camera_centres
+    return map_advice(targets, tracks, views, surveyed.used, surveyed.targets, centres, MIN_VIEWS,
+                      MIN_BASELINE_DEG)
+
+
+def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews,
+                 camera_centres: np.ndarray | None = None) -> list[str]:
+    """Warnings about weak parts of the map, for the user: what is weak and what to film.
+
+    Parameters
+    ----------
+    results : list of SurveyedTarget
+        The surveyed targets, in the order of ``surveyed.targets``.
+    tracks : Tracks
+        The observations.
+    views : Views
+        Every view.
+    surveyed : SurveyedViews
+        The views the map rests on.
+    camera_centres : (F, 3) ndarray, optional
+        The registered cameras' centres; without them no pure pan is told.
 
     Returns
     -------
     list of str
-        For the user: targets seen in fewer than ``MIN_VIEWS`` frames or over less than
-        ``MIN_BASELINE_DEG``, targets detected but not surveyed, and parts of the map
-        not seen together with the rest (only linked through camera motion).
+        The messages of `map_advice_of`: a pure pan; each card seen in fewer than
+        ``MIN_VIEWS`` frames or over less than ``MIN_BASELINE_DEG``; the cards detected
+        but not surveyed; each part of the map not seen together with the rest (only
+        linked through camera motion) with its nearest mapped neighbours.
     """
-    out: list[str] = []
-    few = [r.id for r in results if r.n_views < MIN_VIEWS]
-    if few:
-        out.append(f"targets {few} were seen in fewer than {MIN_VIEWS} registered frames: their positions are weak")
-    narrow = [r.id for r in results if r.baseline_deg < MIN_BASELINE_DEG]
-    if narrow:
-        out.append(f"targets {narrow} were seen from too narrow a range of directions "
-                   f"(< {MIN_BASELINE_DEG:g} degrees): walk around them more")
-    missing = sorted(set(tracks.ids.tolist()) - {r.id for r in results})
-    if missing:
-        out.append(f"targets {missing} were detected but could not be surveyed (not seen together with the "
-                   "rest of the map from registered frames, or their views did not fit)")
-    # Co-visibility graph of the surveyed targets: an edge when two share a frame.
-    n = len(tracks.ids)
-    vf, vt = views.frame[surveyed.used], views.target[surveyed.used]
-    inc = sp.csr_matrix((np.ones(len(vf)), (vt, vf)), shape=(n, tracks.n_frames))
-    adj = (inc @ inc.T)[surveyed.targets][:, surveyed.targets]
-    n_comp, labels = connected_components(adj, directed=False)
-    if n_comp > 1:
-        sizes = np.bincount(labels)
-        main = int(np.argmax(sizes))
-        parts = [sorted(int(tracks.ids[surveyed.targets[i]]) for i in np.flatnonzero(labels == c))
-                 for c in range(n_comp) if c != main]
-        out.append(f"parts of the map are not seen together with the rest (only linked through camera motion): "
-                   f"{parts}; film them together with their neighbours")
-    return out
+    return [w.message for w in map_advice_of(results, tracks, views, surveyed, camera_centres)]
 
 
 def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews, scale: MetricScale,
@@ -257,9 +264,11 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         centres = np.array([rec.pose(f).position for f in frames_t])
         X = rec.discs(t)
         angle = max_angle_deg(centres, X.mean(axis=0))
+        distance = float(np.median(np.linalg.norm(centres - X.mean(axis=0), axis=1)))
         results.append(SurveyedTarget(int(tracks.ids[t]), X.copy(), std[4 * t : 4 * t + 4].copy(),
-                                      int(len(frames_t)), angle))
-    state.warnings += map_warnings(results, tracks, views, surveyed)
+                                      len(frames_t), angle, distance))
+    camera_centres = np.array([rec.pose(f).position for f in np.flatnonzero(registered)]).reshape(-1, 3)
+    state.warnings += map_warnings(results, tracks, views, surveyed, camera_centres)
     trajectory: list[Pose | None] = [None] * n_input_frames
     for fi, index in enumerate(used_frames):
         if registered[fi]:
@@ -267,6 +276,6 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     return SurveyResult(
         camera=rec.camera, targets=results, rms_px=rms, trajectory=trajectory, warnings=state.warnings,
         intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
-        n_observations=int(len(info.obs)), n_rejected_views=surveyed.n_rejected,
+        n_observations=len(info.obs), n_rejected_views=surveyed.n_rejected,
         scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s,
     )

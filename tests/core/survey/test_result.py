@@ -62,8 +62,9 @@ def test_rejected_views_and_weak_targets(true_state: SurveyState) -> None:
     assert result.target(int(ids[t])).n_views == MIN_VIEWS - 1
     with pytest.raises(KeyError):
         result.target(int(ids[15]))
-    assert any(w.startswith(f"targets [{int(ids[t])}] were seen in fewer than {MIN_VIEWS}") for w in result.warnings)
-    assert any(f"targets [{int(ids[15])}] were detected but could not be surveyed" in w for w in result.warnings)
+    assert any(w.startswith(f"card {int(ids[t])}: seen in {MIN_VIEWS - 1} registered frames only (fewer than "
+                            f"{MIN_VIEWS})") for w in result.warnings)
+    assert any(w.startswith(f"card {int(ids[15])} could not be surveyed") for w in result.warnings)
 
 
 def test_parts_of_the_map_seen_apart_are_flagged(true_state: SurveyState) -> None:
@@ -78,7 +79,7 @@ def test_parts_of_the_map_seen_apart_are_flagged(true_state: SurveyState) -> Non
             if views.target[v] != t:
                 true_state.usable[v] = False
     result, surveyed = _result(true_state, list(range(true_state.tracks.n_frames)), true_state.tracks.n_frames)
-    assert any("not seen together with the rest" in w and f"[[{int(true_state.tracks.ids[t])}]]" in w
+    assert any("not seen together with the rest" in w and f": card {int(true_state.tracks.ids[t])};" in w
                for w in map_warnings(result.targets, true_state.tracks, views, surveyed))
 
 
