@@ -47,6 +47,7 @@ WARNING_KINDS = (
     ("parts of the map are not seen together", "disconnected parts"),
     ("fewer than", "few views"),
     ("too narrow", "narrow"),
+    ("only turned on one spot", "pure pan"),
     ("focal length", "lens"),
     ("were ignored", "detections ignored"),
 )
