@@ -23,24 +23,23 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up
-from app.core.geometry import (
-    Camera,
-    PoseUndetermined,
-    TargetObservation,
-    disc_axes,
-    estimate_pose,
-    similarity_from_points,
-)
-from app.core.survey import survey
-from app.sim import BENCH_CAMERA, BENCH_ROOM, camera_walk, frame_truth, render_walk
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
+from app.core.geometry import disc_axes, similarity_from_points  # noqa: E402
+from app.core.survey import survey  # noqa: E402
+from app.sim import BENCH_CAMERA, BENCH_ROOM, camera_walk, frame_truth, render_walk  # noqa: E402
+from bench.walk_runs import detect_frames, track_errors  # noqa: E402
+
 
 def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: float | None = None):  # type: ignore[no-untyped-def]
     """Detections, truths and detection time of a walk: the real detector on rendered
@@ -57,13 +56,7 @@ def _detect_walk(detector: Detector, scene, poses, rng, desc: str, ideal_px: flo
                            if t.visible and t.facing_cos > 0.3 and t.disc_diameter_px > 4.0])
             truths.append(truth)
         return frames, truths, detect_s
-    for image, truth in tqdm(render_walk(scene, BENCH_CAMERA, poses, rng), total=len(poses), desc=desc,
-                             unit="frame", leave=False):
-        start = time.perf_counter()
-        frames.append(detector.detect(image).targets)
-        detect_s += time.perf_counter() - start
-        truths.append(truth)
-    return frames, truths, detect_s
+    return detect_frames(detector, render_walk(scene, BENCH_CAMERA, poses, rng), len(poses), desc)
 
 
 def _at_noise_floor(frames, truths, a: float, c: float, rng: np.random.Generator):  # type: ignore[no-untyped-def]
@@ -84,18 +77,6 @@ def _at_noise_floor(frames, truths, a: float, c: float, rng: np.random.Generator
         out.append(views)
     return out
 
-
-def _track(frames, truths, discs: dict[int, np.ndarray], camera: Camera, to_world):  # type: ignore[no-untyped-def]
-    """Position error (m) per frame, nan where no pose; ``to_world`` maps a pose."""
-    errors = []
-    for detected, truth in zip(frames, truths, strict=True):
-        obs = [TargetObservation(t.id, t.discs, discs[t.id]) for t in detected if t.id in discs]
-        try:
-            pose = to_world(estimate_pose(obs, camera).pose)
-            errors.append(float(np.linalg.norm(pose.position - truth.pose.position)))
-        except PoseUndetermined:
-            errors.append(np.nan)
-    return np.array(errors)
 
 
 @dataclass
@@ -168,12 +149,12 @@ def _survey_room(seed: int, scene, frames, detect_s: float, t_frames, t_truths, 
     # Same frames, same detections, same targets (those the survey mapped) in both runs:
     # the comparison is of map + camera quality, not coverage. Each run uses its own
     # camera (the true one with the true map, the surveyed one with the surveyed map).
-    e_true = _track(t_frames, t_truths, {i: truth[i] for i in surveyed}, BENCH_CAMERA, lambda p: p)
+    e_true = track_errors(t_frames, t_truths, {i: truth[i] for i in surveyed}, BENCH_CAMERA, lambda p: p)
     # The surveyed map is in the survey frame: its poses are mapped into the world
     # through the similarity fitted between surveyed and true discs (scale ~1: metric).
-    e_surv = _track(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
+    e_surv = track_errors(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
     # Isolates the map: the surveyed map with the true camera.
-    e_map = _track(t_frames, t_truths, surveyed, BENCH_CAMERA, similar.apply_pose)
+    e_map = track_errors(t_frames, t_truths, surveyed, BENCH_CAMERA, similar.apply_pose)
     both = np.isfinite(e_true) & np.isfinite(e_surv) & np.isfinite(e_map)
     n_seen = np.array([sum(t.id in surveyed for t in f) for f in t_frames])
 

@@ -25,18 +25,22 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
-from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up
-from app.core.geometry import Camera, Pose, PoseUndetermined, TargetObservation, estimate_pose, similarity_from_points
-from app.core.survey import SurveyError, survey
-from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.core.detection import Detector, load_default_classifier, warm_up  # noqa: E402
+from app.core.geometry import similarity_from_points  # noqa: E402
+from app.core.survey import SurveyError, survey  # noqa: E402
+from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds  # noqa: E402
+from bench.walk_runs import detect_frames, track_errors  # noqa: E402
 
 #: A card counts as mapped-worthy when seen in this many frames over this many degrees.
 MIN_FRAMES, MIN_SPAN_DEG = 10, 5.0
@@ -78,20 +82,6 @@ def cards_to_map(scene: Scene, truths: list[FrameTruth], min_span_deg: float) ->
             if len(positions) >= MIN_FRAMES and widest_angle_deg(np.array(positions), centres[card]) >= min_span_deg}
 
 
-def track(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
-          camera: Camera, to_world) -> np.ndarray:  # type: ignore[no-untyped-def]
-    """Camera position error (m) of each tracking frame, nan where no pose; `to_world`
-    maps a pose of the map's frame into the room's."""
-    errors = []
-    for detected, truth in zip(frames, truths, strict=True):
-        obs = [TargetObservation(t.id, t.discs, discs[t.id]) for t in detected if t.id in discs]
-        try:
-            pose: Pose = to_world(estimate_pose(obs, camera).pose)
-            errors.append(float(np.linalg.norm(pose.position - truth.pose.position)))
-        except PoseUndetermined:
-            errors.append(np.nan)
-    return np.array(errors)
-
 
 @dataclass
 class RoomRun:
@@ -115,23 +105,13 @@ class RoomRun:
     n_located_full: int = 0  # tracking frames located with the whole true map
 
 
-def detect_walk(detector: Detector, frames_iter, n: int, desc: str):  # type: ignore[no-untyped-def]
-    """Detections, truths and detection time (s) of rendered frames."""
-    detections, truths, detect_s = [], [], 0.0
-    for image, truth in tqdm(frames_iter, total=n, desc=desc, unit="frame", leave=False):
-        start = time.perf_counter()
-        detections.append(detector.detect(image).targets)
-        detect_s += time.perf_counter() - start
-        truths.append(truth)
-    return detections, truths, detect_s
-
 
 def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detector,
              tracking: tuple[list, list, Scene]) -> RoomRun:  # type: ignore[type-arg]
     """Render, detect and survey one walk; track the room's tracking walk with the map."""
     room = walk.walk(seed, n_frames)
     camera = walk.room.camera
-    frames, truths, detect_s = detect_walk(survey_detector, room.frames(camera), n_frames,
+    frames, truths, detect_s = detect_frames(survey_detector, room.frames(camera), n_frames,
                                            f"{walk.name} room {seed}")
     should = [seen(t) for t in truths]
     found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
@@ -156,11 +136,11 @@ def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detec
     # true map locates.
     t_frames, t_truths, _ = tracking
     surveyed = {t.id: t.discs for t in result.targets}
-    e_true = track(t_frames, t_truths, {i: truth[i] for i in surveyed}, camera, lambda p: p)
-    e_surv = track(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
+    e_true = track_errors(t_frames, t_truths, {i: truth[i] for i in surveyed}, camera, lambda p: p)
+    e_surv = track_errors(t_frames, t_truths, surveyed, result.camera, similar.apply_pose)
     both = np.isfinite(e_true) & np.isfinite(e_surv)
     run.e_true, run.e_surv = e_true[both], e_surv[both]
-    run.n_located_full = int(np.isfinite(track(t_frames, t_truths, truth, camera, lambda p: p)).sum())
+    run.n_located_full = int(np.isfinite(track_errors(t_frames, t_truths, truth, camera, lambda p: p)).sum())
     return run
 
 
@@ -245,7 +225,7 @@ def main() -> None:
                 # Its own stream: the same tracking walk whatever the surveyed walk.
                 rng = np.random.default_rng([seed, 1])
                 poses = camera_walk(rng, walk.room.size, args.tracking_frames, "tracking")
-                t_frames, t_truths, _ = detect_walk(detector, render_walk(scene, walk.room.camera, poses, rng),
+                t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, walk.room.camera, poses, rng),
                                                     len(poses), f"{walk.room.name} room {seed}: tracking walk")
                 tracking[key] = (t_frames, t_truths, scene)
             runs.setdefault(walk.name, []).append(run_walk(walk, seed, args.frames, survey_detector, tracking[key]))
