@@ -48,7 +48,8 @@ from tqdm import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.sim import scenes  # noqa: E402
-from bench.peers import Detection, PeerDetector, TruthCard, all_detectors, truth_cards  # noqa: E402
+from app.sim.truth import TruthCard, truth_cards  # noqa: E402
+from bench.peers import Detection, PeerDetector, all_detectors  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter")
 CLEAN = "clean"  # fronto-parallel, no degradation: the centre-accuracy row

@@ -40,7 +40,7 @@ from app.core.detection import assemble_targets, find_candidates, load_default_c
 from app.core.detection.candidates import pyramid  # noqa: E402
 from app.sim.candidates import simulate_candidates  # noqa: E402
 from bench.bench_detect import EMPTY, Stats, draw_frame, score_frame  # noqa: E402
-from bench.peers import truth_cards  # noqa: E402
+from app.sim.truth import truth_cards  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "clutter", "clean", EMPTY)
 STAGES = ("group", "verify", "refine", "identify", "complete")

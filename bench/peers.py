@@ -58,7 +58,6 @@ from app.core.markers import DEFAULT_FAMILY, get_family
 from app.sim.scenes import CARD_TEXTURE_PX, CardArtwork
 # A tag's black square spans the outer extent of our discs across the card (0.075..0.925).
 from app.sim.truth import FOOTPRINT_HI as TAG_HI, FOOTPRINT_LO as TAG_LO, FOOTPRINT_UV as TAG_CORNERS_UV
-from app.sim.truth import TruthCard, truth_cards  # noqa: F401  (the benchmark's truth, here with the peers)
 
 Detection = tuple[int, np.ndarray]
 

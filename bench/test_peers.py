@@ -10,6 +10,7 @@ import pytest
 pytest.importorskip("pupil_apriltags")
 
 from app.sim import scenes  # noqa: E402
+from app.sim.truth import truth_cards  # noqa: E402
 from bench import peers  # noqa: E402
 
 SEEDS = (1, 2)  # clean frames: fronto-parallel cards, no degradation, random roll
@@ -46,7 +47,7 @@ def test_own_detector_finds_artwork_with_corners_in_printed_order(detectors, nam
     checked = 0
     for seed in SEEDS:
         image, truth = scenes.scenario_frame("clean", np.random.default_rng(seed), artwork=detector.artwork)
-        cards = [c for c in peers.truth_cards(truth, detector.artwork) if c.counted]
+        cards = [c for c in truth_cards(truth, detector.artwork) if c.counted]
         assert cards
         for k in range(4):
             rotated, _ = _rot90(image, np.zeros((0, 2)), k)
