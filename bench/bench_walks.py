@@ -28,6 +28,7 @@ import dataclasses
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,9 +38,19 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import Detector, load_default_classifier, warm_up  # noqa: E402
+from app.core.features import FeatureTracker, exclusion_mask  # noqa: E402
 from app.core.geometry import similarity_from_points  # noqa: E402
-from app.core.survey import SurveyError, survey  # noqa: E402
-from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds  # noqa: E402
+from app.core.survey import FeatureObservations, SurveyError, survey  # noqa: E402
+from app.sim import (  # noqa: E402
+    WALKS,
+    ExampleWalk,
+    FrameTruth,
+    Scene,
+    camera_walk,
+    frame_truth,
+    render_walk,
+    walk_speeds,
+)
 from bench.walk_runs import detect_frames, track_errors  # noqa: E402
 
 #: A card counts as mapped-worthy when seen in this many frames over this many degrees.
@@ -88,6 +99,7 @@ class RoomRun:
     """One walk through one room: what the survey made of it."""
 
     seed: int
+    tracks: str  # "cards": the card-only survey; "features": with feature tracks beside the cards
     n_frames: int
     n_with_card: int  # frames in which the detector found a card
     recall: float  # cards found / cards seen, over every frame
@@ -107,26 +119,56 @@ class RoomRun:
 
 
 def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detector,
-             tracking: tuple[list, list, Scene]) -> RoomRun:  # type: ignore[type-arg]
-    """Render, detect and survey one walk; track the room's tracking walk with the map."""
+             tracking: tuple[list, list, Scene], kinds: list[str]) -> list[RoomRun]:  # type: ignore[type-arg]
+    """Render, detect and feature-track one walk, survey it with each kind of track
+    (``kinds``: cards, features); track the room's tracking walk with each map."""
     room = walk.walk(seed, n_frames)
     camera = walk.room.camera
-    frames, truths, detect_s = detect_frames(survey_detector, room.frames(camera), n_frames,
+    tracker = FeatureTracker() if "features" in kinds else None
+    track_s = 0.0
+
+    images: list[np.ndarray] = []
+    frames, truths, detect_s = detect_frames(survey_detector, _keep(room.frames(camera), images), n_frames,
                                            f"{walk.name} room {seed}")
+    if tracker is not None:
+        start = time.perf_counter()
+        for image, detected in zip(images, frames, strict=True):
+            tracker.add(image, exclusion_mask(image.shape[:2], np.array([t.discs for t in detected]).reshape(-1, 4, 2)))
+        features = FeatureObservations.from_tracks(tracker.tracks())
+        track_s = time.perf_counter() - start
     should = [seen(t) for t in truths]
     found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
-    run = RoomRun(seed, n_frames, sum(bool(f) for f in frames), found / max(sum(len(s) for s in should), 1),
-                  cards_to_map(room.scene, truths, MIN_SPAN_DEG), cards_to_map(room.scene, truths, 0.0))
+    return [_survey_run(walk, room.scene, seed, kind, frames, truths, should, found,
+                        detect_s + (track_s if kind == "features" else 0.0),
+                        features if kind == "features" else None, tracking) for kind in kinds]
+
+
+def _keep(frames: Iterable[tuple[np.ndarray, FrameTruth]], images: list[np.ndarray]
+          ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+    """The rendered frames, each image kept in ``images`` on the way (for the feature tracker)."""
+    for image, truth in frames:
+        images.append(image)
+        yield image, truth
+
+
+def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: list, truths: list[FrameTruth],  # type: ignore[type-arg]
+                should: list[set[int]], found: int, before_s: float, features: FeatureObservations | None,
+                tracking: tuple[list, list, Scene]) -> RoomRun:  # type: ignore[type-arg]
+    """Survey one detected walk with one kind of track and measure the map."""
+    camera = walk.room.camera
+    run = RoomRun(seed, kind, len(frames), sum(bool(f) for f in frames),
+                  found / max(sum(len(s) for s in should), 1),
+                  cards_to_map(scene, truths, MIN_SPAN_DEG), cards_to_map(scene, truths, 0.0))
     start = time.perf_counter()
     try:
-        result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
+        result = survey(frames, camera.width, camera.height, walk.room.marker_size_m, features=features)
     except SurveyError as e:
-        run.failure, run.wall_s = str(e), detect_s + time.perf_counter() - start
+        run.failure, run.wall_s = str(e), before_s + time.perf_counter() - start
         return run
-    run.wall_s = detect_s + time.perf_counter() - start
+    run.wall_s = before_s + time.perf_counter() - start
     run.mapped, run.n_registered, run.warnings = {t.id for t in result.targets}, result.n_registered, result.warnings
     run.focal_pct = 100 * (result.camera.fx / camera.fx - 1)
-    truth = {t.id: t.discs for t in room.scene.targets}
+    truth = {t.id: t.discs for t in scene.targets}
     src = np.concatenate([t.discs for t in result.targets])
     dst = np.concatenate([truth[t.id] for t in result.targets])
     similar = similarity_from_points(src, dst)
@@ -170,7 +212,7 @@ def walk_row(walk: ExampleWalk, runs: list[RoomRun]) -> str:
     rms = (f"{np.median([r.disc_rms_mm for r in ok]):.2f} / {max(r.disc_rms_mm for r in ok):.2f}" if ok else "-")
     tracking = (f"{1000 * np.median(e_true):.2f} / {1000 * np.median(e_surv):.2f} ({located} / {located_full})"
                 if len(e_true) else "-")
-    return (f"| {walk.name} | {registered} / {frames} ({100 * registered / frames:.0f} %) "
+    return (f"| {walk.name} | {runs[0].tracks} | {registered} / {frames} ({100 * registered / frames:.0f} %) "
             f"| {sum(r.n_with_card for r in runs)} | {100 * np.mean([r.recall for r in runs]):.1f} % "
             f"| {mapped} / {to_map} | {mapped_often} / {often} | {focal} | {rms} | {tracking} "
             f"| {np.mean([r.wall_s for r in runs]):.1f} | {len(runs) - len(ok)} "
@@ -202,6 +244,8 @@ def main() -> None:
     parser.add_argument("--tracking-frames", type=int, default=100, help="frames of each room's tracking walk")
     parser.add_argument("--rooms", type=int, default=8, help="rooms (seeds 0 .. rooms - 1) per walk type")
     parser.add_argument("--walks", nargs="+", choices=list(WALKS), default=list(WALKS), help="walk types")
+    parser.add_argument("--tracks", nargs="+", choices=["cards", "features"], default=["cards", "features"],
+                        help="survey with card tracks only, with feature tracks beside them, or both side by side")
     parser.add_argument("--quick", action="store_true", help="2 rooms, 150-frame walks, 40-frame tracking walks")
     parser.add_argument("--details", action="store_true", help="a row per room as well")
     args = parser.parse_args()
@@ -216,7 +260,7 @@ def main() -> None:
     started = time.perf_counter()
 
     tracking: dict[tuple[str, int], tuple[list, list, Scene]] = {}  # type: ignore[type-arg]
-    runs: dict[str, list[RoomRun]] = {}
+    runs: dict[tuple[str, str], list[RoomRun]] = {}
     for walk in walks:
         for seed in seeds:
             key = (walk.room.name, seed)
@@ -228,7 +272,8 @@ def main() -> None:
                 t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, walk.room.camera, poses, rng),
                                                     len(poses), f"{walk.room.name} room {seed}: tracking walk")
                 tracking[key] = (t_frames, t_truths, scene)
-            runs.setdefault(walk.name, []).append(run_walk(walk, seed, args.frames, survey_detector, tracking[key]))
+            for run in run_walk(walk, seed, args.frames, survey_detector, tracking[key], args.tracks):
+                runs.setdefault((walk.name, run.tracks), []).append(run)
 
     print(f"\nWalks: {args.frames} frames at 30 a second, rooms (seeds) {seeds[0]}-{seeds[-1]}, 640x480, "
           f"f 820 px, k1 -0.12, cards of 0.2 m; tracking walks of {args.tracking_frames} frames; "
@@ -238,26 +283,29 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     for walk in walks:
         print(describe(walk, seeds, args.frames))
-    print("\n| walk | frames registered | frames with a card detected | cards found per card seen "
+    print("\n| walk | tracks | frames registered | frames with a card detected | cards found per card seen "
           f"| cards mapped / seen in {MIN_FRAMES}+ frames over {MIN_SPAN_DEG:g}+ deg "
           f"| mapped / seen in {MIN_FRAMES}+ frames | focal error, worst | disc RMS, median / worst (mm) "
           "| tracking median, true / surveyed map (mm) (frames located: surveyed / whole true map) "
           "| detection + survey per room (s) | surveys failed | warnings per room: kinds over all rooms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for walk in walks:
-        print(walk_row(walk, runs[walk.name]))
+        for kind in args.tracks:
+            print(walk_row(walk, runs[walk.name, kind]))
     for walk in walks:
-        failures = [f"room {r.seed}: {r.failure}" for r in runs[walk.name] if r.failure]
-        for failure in failures:
-            print(f"\n{walk.name}, survey failed in {failure}")
+        for kind in args.tracks:
+            for r in runs[walk.name, kind]:
+                if r.failure:
+                    print(f"\n{walk.name} ({kind}), survey failed in room {r.seed}: {r.failure}")
     if args.details:
-        print("\n| walk | room | registered | cards mapped / to map | focal error | disc RMS (mm) | s |")
-        print("|---|---|---|---|---|---|---|")
+        print("\n| walk | tracks | room | registered | cards mapped / to map | focal error | disc RMS (mm) | s |")
+        print("|---|---|---|---|---|---|---|---|")
         for walk in walks:
-            for r in runs[walk.name]:
-                print(f"| {walk.name} | {r.seed} | {r.n_registered} / {r.n_frames} "
-                      f"| {len(r.mapped & r.to_map)} / {len(r.to_map)} | {r.focal_pct:+.3f} % "
-                      f"| {r.disc_rms_mm:.2f} | {r.wall_s:.1f} |")
+            for kind in args.tracks:
+                for r in runs[walk.name, kind]:
+                    print(f"| {walk.name} | {kind} | {r.seed} | {r.n_registered} / {r.n_frames} "
+                          f"| {len(r.mapped & r.to_map)} / {len(r.to_map)} | {r.focal_pct:+.3f} % "
+                          f"| {r.disc_rms_mm:.2f} | {r.wall_s:.1f} |")
 
 
 if __name__ == "__main__":

@@ -30,6 +30,10 @@ def start_survey(
     marker_size_m: Annotated[float | None, Form(description="Printed card side; default: the environment's.")] = None,
     intrinsics: Annotated[str | None, Form(description='JSON {"width","height","K","dist"}: fixes the camera.')] = None,
     max_frames: Annotated[int | None, Form(description="Frames to use, evenly spaced (default from settings).")] = None,
+    feature_tracks: Annotated[bool, Form(description=(
+        "Also track the scene's own points (the walls' texture) and register frames through them: frames that "
+        "see one card or none, and cards never filmed together, join the map. The map still holds the cards "
+        "only."))] = False,
 ) -> JobOut:
     """Survey the environment from a video of it (or a set of images): structure from
     motion gives the camera's focal length, principal point and distortion and the 3D
@@ -39,7 +43,7 @@ def start_survey(
         session, runner, settings, environment_id,
         video=video.file if video is not None else None,
         images=[upload.file for upload in images or []],
-        marker_size_m=marker_size_m, intrinsics=intrinsics, max_frames=max_frames,
+        marker_size_m=marker_size_m, intrinsics=intrinsics, max_frames=max_frames, feature_tracks=feature_tracks,
     )
     response.headers["Location"] = f"/jobs/{job.id}"
     return job

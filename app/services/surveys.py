@@ -26,7 +26,8 @@ from sqlalchemy.orm import Session
 from app.core.detection import Detector
 from app.core.geometry import Camera
 from app.core.imagecodec import PNG_MAGIC, decode_gray
-from app.core.survey import SurveyError, survey
+from app.core.features import FeatureTracker, exclusion_mask
+from app.core.survey import FeatureObservations, SurveyError, survey
 from app.schemas import CameraModel, JobOut, MapDocument
 from app.services import classifiers, environments, images, jobs
 from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia
@@ -134,6 +135,7 @@ class SurveyParams(BaseModel):
     classifier_id: int
     family: str
     max_pixels: int
+    feature_tracks: bool = False  # track the scene's own points beside the cards
 
 
 def submit_survey(
@@ -147,6 +149,7 @@ def submit_survey(
     marker_size_m: float | None,
     intrinsics: str | None,
     max_frames: int | None,
+    feature_tracks: bool = False,
 ) -> JobOut:
     """Check and store the upload, queue the survey job. Nothing stays on disk and no
     row is written when the upload is refused."""
@@ -182,7 +185,7 @@ def submit_survey(
             video_frames=video_frames, width=width, height=height,
             marker_size_m=float(marker_size_m or environment.marker_size_m), intrinsics=camera,
             max_frames=int(max_frames or settings.survey_frames), classifier_id=classifier_id,
-            family=environment.marker_family, max_pixels=settings.max_image_pixels,
+            family=environment.marker_family, max_pixels=settings.max_image_pixels, feature_tracks=feature_tracks,
         )
         job = runner.submit(session, JobKind.SURVEY, params, environment_id=environment_id, job_id=job_id,
                             max_active=settings.max_queued_jobs)
@@ -260,11 +263,17 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
         # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
         detector = Detector(classifiers.load(session, params.classifier_id), params.family, fit_discs=True)
     detections = []
-    context.progress("detecting targets", 0.0)
+    # The scene's own points, tracked through the frames the survey uses (the cards left
+    # out: their discs are tracked as discs).
+    tracker = FeatureTracker() if params.feature_tracks else None
+    stage = "detecting targets and tracking features" if tracker is not None else "detecting targets"
+    context.progress(stage, 0.0)
     for position, count, gray in read_frames(params):
-        detections.append(detector.detect(gray).targets)
-        context.progress("detecting targets", 0.5 * (position + 1) / count,
-                         f"frame {position + 1} of {count}")
+        targets = detector.detect(gray).targets
+        detections.append(targets)
+        if tracker is not None:
+            tracker.add(gray, exclusion_mask(gray.shape, np.array([t.discs for t in targets]).reshape(-1, 4, 2)))
+        context.progress(stage, 0.5 * (position + 1) / count, f"frame {position + 1} of {count}")
     found = sum(len(d) for d in detections)
     if found == 0:
         raise SurveyError(f"no target was found in any of the {len(detections)} frames: "
@@ -274,12 +283,13 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     def progress(stage: str, fraction: float) -> None:
         context.progress(stage, 0.5 + 0.48 * min(max(fraction, 0.0), 1.0))
 
+    features = FeatureObservations.from_tracks(tracker.tracks()) if tracker is not None else None
     result = survey(detections, params.width, params.height, params.marker_size_m, intrinsics=intrinsics,
-                    progress=progress)
+                    progress=progress, features=features)
     document = MapDocument.model_validate(result.to_map_document(frame="survey", survey_job_id=context.job_id))
     summary = result.summary()
     # The calibration trajectory: the camera of each frame used (None: not registered).
-    summary.update({"frames_used": len(detections), "detections": found,
+    summary.update({"frames_used": len(detections), "detections": found, "feature_tracks": params.feature_tracks,
                     "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
     assert context.environment_id is not None
     with context.finishing(summary) as session:

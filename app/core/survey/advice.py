@@ -93,7 +93,7 @@ def _nearest(centre: np.ndarray, among: list[TargetViews]) -> list[int]:
 
 def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: np.ndarray,
                surveyed: np.ndarray, camera_centres: np.ndarray, min_views: int,
-               min_baseline_deg: float) -> list[MapWarning]:
+               min_baseline_deg: float, frame_groups: np.ndarray | None = None) -> list[MapWarning]:
     """The warnings about weak parts of a map, each naming its cards and what to film.
 
     Parameters
@@ -114,6 +114,10 @@ def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: n
         The fewest registered frames a target is to be used in.
     min_baseline_deg : float
         The survey's minimum baseline for a target, degrees.
+    frame_groups : (F,) ndarray of int, optional
+        A label per frame: frames with one label are linked by the scene's own points
+        (`features.feature_groups`), so cards seen in any of them count as seen
+        together. Default: each frame alone (cards only).
 
     Returns
     -------
@@ -122,10 +126,13 @@ def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: n
         ``PAN_RADIUS_M`` of their median, or of the targets under ``min_baseline_deg``; it
         takes the place of the per-card narrow warnings, which it explains); then per
         card, those seen in fewer than ``min_views`` frames or over less than
-        ``min_baseline_deg``; then the cards detected but not surveyed, named with the
-        mapped cards seen in the same frames; then the parts of the map never seen
-        together with the rest, named with their nearest mapped neighbours.
+        ``min_baseline_deg``; then the cards detected but not surveyed, one warning per
+        group of them seen together (each group named with the mapped cards seen in
+        its frames); then the parts of the map never seen together with the rest, named
+        with their nearest mapped neighbours.
     """
+    group = np.arange(tracks.n_frames) if frame_groups is None else np.asarray(frame_groups)
+    n_groups = int(group.max()) + 1 if len(group) else 0
     out: list[MapWarning] = []
     centres = np.asarray(camera_centres, float).reshape(-1, 3)
     if len(centres) >= 2:
@@ -152,24 +159,31 @@ def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: n
             kind = WarningKind.FEW_VIEWS if few else WarningKind.NARROW
             out.append(MapWarning(kind, (t.id,), _card_advice(t, few, narrow, min_views, min_baseline_deg)))
     mapped = {t.id for t in targets}
-    missing = sorted(set(tracks.ids.tolist()) - mapped)
-    if missing:
-        index = {int(i): k for k, i in enumerate(tracks.ids)}
-        frames_missing = set(views.frame[np.isin(views.target, [index[i] for i in missing])].tolist())
-        in_frames = np.isin(views.frame, list(frames_missing))
-        company = sorted(mapped & {int(tracks.ids[k]) for k in views.target[in_frames]})
-        names = "cards " + _ids(missing) if len(missing) > 1 else f"card {missing[0]}"
-        fix = (f"film {'them' if len(missing) > 1 else 'it'} again in the same shots as mapped cards "
-               f"(seen in the same frames: {_ids(company)}), from several positions" if company else
-               f"film {'them' if len(missing) > 1 else 'it'} in the same shots as cards already mapped, "
-               "from several positions")
-        out.append(MapWarning(WarningKind.NOT_SURVEYED, tuple(missing), (
-            f"{names} could not be surveyed (detected, but not seen together with the rest of the map from "
-            f"registered frames, or their views did not fit): {fix}")))
-    # Co-visibility graph of the surveyed targets: an edge when two share a frame.
+    index = {int(i): k for k, i in enumerate(tracks.ids)}
+    missing = [index[i] for i in sorted(set(tracks.ids.tolist()) - mapped)]
     n = len(tracks.ids)
+    if missing:
+        # The missing cards in groups seen together (in one frame, or linked frames).
+        inc_all = sp.csr_matrix((np.ones(len(views)), (views.target, group[views.frame])), shape=(n, n_groups))
+        _, parts = connected_components((inc_all @ inc_all.T)[missing][:, missing], directed=False)
+        for part in np.unique(parts):
+            ids = sorted(int(tracks.ids[missing[k]]) for k in np.flatnonzero(parts == part))
+            own = np.isin(views.target, [index[i] for i in ids])
+            company = sorted(mapped & {int(tracks.ids[k]) for k in
+                                       views.target[np.isin(group[views.frame], group[views.frame[own]])]})
+            names = "cards " + _ids(ids) if len(ids) > 1 else f"card {ids[0]}"
+            together = " (seen together, but not with the map)" if len(ids) > 1 and len(missing) > len(ids) else ""
+            fix = (f"film {'them' if len(ids) > 1 else 'it'} again in the same shots as mapped cards "
+                   f"(seen in the same frames: {_ids(company)}), from several positions" if company else
+                   f"film {'them' if len(ids) > 1 else 'it'} in the same shots as cards already mapped, "
+                   "from several positions")
+            out.append(MapWarning(WarningKind.NOT_SURVEYED, tuple(ids), (
+                f"{names}{together} could not be surveyed (detected, but not seen together with the rest of the "
+                f"map from registered frames, or their views did not fit): {fix}")))
+    # Co-visibility graph of the surveyed targets: an edge when two share a frame (or
+    # frames linked by feature points).
     vf, vt = views.frame[used], views.target[used]
-    inc = sp.csr_matrix((np.ones(len(vf)), (vt, vf)), shape=(n, tracks.n_frames))
+    inc = sp.csr_matrix((np.ones(len(vf)), (vt, group[vf])), shape=(n, n_groups))
     adj = (inc @ inc.T)[surveyed][:, surveyed]
     n_comp, labels = connected_components(adj, directed=False)
     if n_comp > 1:

@@ -22,6 +22,11 @@ from typing import Protocol
 
 import numpy as np
 
+#: The expected error of a feature observation, px per axis: the feature tracker's points
+#: on the example walks fit their adjusted points to 0.13-0.15 px RMS (2D), and to
+#: 0.07 px (median) the points triangulated from the true poses.
+DEFAULT_SIGMA_PX = 0.15
+
 
 class RobustLoss(StrEnum):
     """The robust loss of a feature point's whitened reprojection error.
@@ -106,7 +111,7 @@ class FeatureObservations:
     frame: np.ndarray
     track: np.ndarray
     uv: np.ndarray
-    sigma_px: float = 0.5
+    sigma_px: float = DEFAULT_SIGMA_PX
     loss: RobustLoss = RobustLoss.HUBER
     loss_scale: float = 2.5
 
@@ -122,7 +127,7 @@ class FeatureObservations:
         return len(self.frame)
 
     @classmethod
-    def from_tracks(cls, tracks: TrackArrays, sigma_px: float = 0.5, loss: RobustLoss = RobustLoss.HUBER,
+    def from_tracks(cls, tracks: TrackArrays, sigma_px: float = DEFAULT_SIGMA_PX, loss: RobustLoss = RobustLoss.HUBER,
                     loss_scale: float = 2.5) -> FeatureObservations:
         """The observations of a feature tracker's tracks, with a noise model.
 
@@ -156,6 +161,63 @@ class FeatureObservations:
             Zero rows, the default noise model.
         """
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+
+    def in_frames(self, used: np.ndarray) -> FeatureObservations:
+        """The observations of some frames only, renumbered as those frames.
+
+        Parameters
+        ----------
+        used : (F,) ndarray of int
+            The frames kept, increasing (as `tracks.subsample_frames` gives them).
+
+        Returns
+        -------
+        FeatureObservations
+            The observations of those frames, ``frame`` now an index into ``used``; the
+            same tracks and noise model.
+        """
+        used = np.asarray(used, dtype=np.int64)
+        position = np.searchsorted(used, self.frame)
+        keep = (position < len(used)) & (used[np.minimum(position, len(used) - 1)] == self.frame)
+        return FeatureObservations(position[keep], self.track[keep], self.uv[keep], self.sigma_px, self.loss,
+                                   self.loss_scale)
+
+    def thinned(self, per_frame: int, min_length: int = 3) -> FeatureObservations:
+        """The longest tracks, enough for each frame: the rest left out.
+
+        A frame is registered as well by a hundred well-spread points as by a thousand,
+        and the bundle adjustment's cost grows with every observation. The tracks kept
+        are those among the ``per_frame`` longest of some frame that they are seen in
+        (a long track links many frames: it holds the chain of poses together).
+
+        Parameters
+        ----------
+        per_frame : int
+            How many of each frame's longest tracks are kept.
+        min_length : int
+            Tracks seen in fewer frames are left out.
+
+        Returns
+        -------
+        FeatureObservations
+            The observations of the tracks kept (track indices unchanged).
+        """
+        length = np.bincount(self.track, minlength=self.n_points)
+        # Each frame's observations, longest track first (ties: the lower track index).
+        order = np.lexsort((self.track, -length[self.track], self.frame))
+        frame = self.frame[order]
+        starts = np.r_[0, np.flatnonzero(np.diff(frame)) + 1]
+        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+        chosen = np.zeros(self.n_points, bool)
+        chosen[self.track[order[rank < per_frame]]] = True
+        keep = chosen[self.track] & (length[self.track] >= min_length)
+        return FeatureObservations(self.frame[keep], self.track[keep], self.uv[keep], self.sigma_px, self.loss,
+                                   self.loss_scale)
+
+    @property
+    def n_points(self) -> int:
+        """The number of feature points (one past the largest track index)."""
+        return int(self.track.max()) + 1 if len(self.track) else 0
 
     def whitened(self, residuals: np.ndarray) -> np.ndarray:
         """The whitened error of each residual.

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.survey.features import feature_supported
 from app.core.survey.state import SurveyState
 
 #: The final bundle adjustment's robust loss and outlier test, on whitened errors (error
@@ -109,7 +110,10 @@ def prune(state: SurveyState, threshold: float, px_unit: np.ndarray | None = Non
     judged = judged_views(state)
     errors = view_errors(state, judged, px_unit)
     misfit = judged & (errors > threshold)
-    for f in np.flatnonzero(rec.registered()):
+    # A frame that rests on feature points is judged by them (`prune_features`): cards
+    # that do not fit it are set aside there.
+    on_features = feature_supported(state)
+    for f in np.flatnonzero(rec.registered() & ~on_features):
         v = views.of_frame[f][judged[views.of_frame[f]]]
         if f != state.seed_frame and len(v) and misfit[v].mean() > 0.5:
             rec.unregister(f)
@@ -132,7 +136,8 @@ def prune(state: SurveyState, threshold: float, px_unit: np.ndarray | None = Non
 
 
 def drop_unsupported(state: SurveyState) -> None:
-    """Unregister every frame, and unplace every target, left with no usable view.
+    """Unregister every frame, and unplace every target, left with no usable view (for a
+    frame: neither a card's nor enough feature points', `features.feature_supported`).
 
     Parameters
     ----------
@@ -140,7 +145,8 @@ def drop_unsupported(state: SurveyState) -> None:
         The survey; its reconstruction is updated.
     """
     rec, views, usable = state.reconstruction, state.views, state.usable
-    for f in np.flatnonzero(rec.registered()):
+    on_features = feature_supported(state)
+    for f in np.flatnonzero(rec.registered() & ~on_features):
         if not usable[views.of_frame[f]].any():
             rec.unregister(f)
     for t in range(state.tracks.n_targets):

@@ -12,6 +12,7 @@ from app.core.geometry import Camera, Pose
 from app.core.survey.advice import MapWarning, TargetViews, map_advice
 from app.core.survey.bundle import BundleInfo
 from app.core.survey.cards import max_angle_deg
+from app.core.survey.features import feature_groups
 from app.core.survey.place import MIN_BASELINE_DEG
 from app.core.survey.scale import MetricScale
 from app.core.survey.state import SurveyError, SurveyState, Tracks, Views
@@ -174,7 +175,8 @@ def surveyed_views(state: SurveyState) -> SurveyedViews:
 
 
 def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews,
-                  camera_centres: np.ndarray | None = None) -> list[MapWarning]:
+                  camera_centres: np.ndarray | None = None, frame_groups: np.ndarray | None = None
+                  ) -> list[MapWarning]:
     """The typed warnings about weak parts of the map (`advice.map_advice`).
 
     Parameters
@@ -189,6 +191,8 @@ def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, s
         The views the map rests on.
     camera_centres : (F, 3) ndarray, optional
         The registered cameras' centres; without them no pure pan is told.
+    frame_groups : (F,) ndarray of int, optional
+        Frames linked by feature points (`features.feature_groups`); default: none.
 
     Returns
     -------
@@ -198,11 +202,11 @@ def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, s
     targets = [TargetViews(r.id, r.discs.mean(axis=0), r.n_views, r.baseline_deg, r.distance_m) for r in results]
     centres = np.zeros((0, 3)) if camera_centres is None else camera_centres
     return map_advice(targets, tracks, views, surveyed.used, surveyed.targets, centres, MIN_VIEWS,
-                      MIN_BASELINE_DEG)
+                      MIN_BASELINE_DEG, frame_groups)
 
 
 def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews,
-                 camera_centres: np.ndarray | None = None) -> list[str]:
+                 camera_centres: np.ndarray | None = None, frame_groups: np.ndarray | None = None) -> list[str]:
     """Warnings about weak parts of the map, for the user: what is weak and what to film.
 
     Parameters
@@ -217,6 +221,8 @@ def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, su
         The views the map rests on.
     camera_centres : (F, 3) ndarray, optional
         The registered cameras' centres; without them no pure pan is told.
+    frame_groups : (F,) ndarray of int, optional
+        Frames linked by feature points (`features.feature_groups`); default: none.
 
     Returns
     -------
@@ -226,7 +232,7 @@ def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, su
         but not surveyed; each part of the map not seen together with the rest (only
         linked through camera motion) with its nearest mapped neighbours.
     """
-    return [w.message for w in map_advice_of(results, tracks, views, surveyed, camera_centres)]
+    return [w.message for w in map_advice_of(results, tracks, views, surveyed, camera_centres, frame_groups)]
 
 
 def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews, scale: MetricScale,
@@ -268,7 +274,7 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         results.append(SurveyedTarget(int(tracks.ids[t]), X.copy(), std[4 * t : 4 * t + 4].copy(),
                                       len(frames_t), angle, distance))
     camera_centres = np.array([rec.pose(f).position for f in np.flatnonzero(registered)]).reshape(-1, 3)
-    state.warnings += map_warnings(results, tracks, views, surveyed, camera_centres)
+    state.warnings += map_warnings(results, tracks, views, surveyed, camera_centres, feature_groups(state))
     trajectory: list[Pose | None] = [None] * n_input_frames
     for fi, index in enumerate(used_frames):
         if registered[fi]:

@@ -19,6 +19,7 @@ import numpy as np
 
 from app.core.geometry import Camera, Pose
 from app.core.markers import DISC_CENTRES
+from app.core.survey.points import FeatureObservations
 
 #: A progress callback: stage name, fraction done in [0, 1].
 Progress = Callable[[str, float], None]
@@ -393,10 +394,16 @@ class SurveyState:
     lens_refined: bool  # the intrinsics are given or fitted: views are judged by ``outlier_px``
     seed_frame: int = -1  # the frame that fixes the map frame (identity pose; never taken out)
     attempted: dict[int, int] = field(default_factory=dict)  # frame -> placed targets seen when last tried
+    # The second kind of track (`features`): the scene's own points.
+    features: FeatureObservations = field(default_factory=FeatureObservations.empty)
+    feature_X: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (P, 3), nan: not triangulated
+    feature_usable: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (K,) views not found wrong
+    feature_attempted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (P,) views when last tried
+    feature_tried: dict[int, int] = field(default_factory=dict)  # frame -> feature points seen when last tried
 
     @classmethod
     def start(cls, tracks: Tracks, camera: Camera, settings: SurveySettings, clock: StageClock,
-              warnings: list[str]) -> SurveyState:
+              warnings: list[str], features: FeatureObservations | None = None) -> SurveyState:
         """The state before the first frame is registered.
 
         Parameters
@@ -411,6 +418,8 @@ class SurveyState:
             Progress and timing.
         warnings : list of str
             Warnings so far; the state appends to it.
+        features : FeatureObservations, optional
+            Feature tracks beside the cards, their frames numbered as the tracks'.
 
         Returns
         -------
@@ -418,6 +427,8 @@ class SurveyState:
             Nothing registered or placed, every view usable.
         """
         views = Views.from_tracks(tracks)
+        features = FeatureObservations.empty() if features is None else features
+        n_points = features.n_points
         return cls(
             tracks=tracks,
             views=views,
@@ -432,6 +443,10 @@ class SurveyState:
             unplaced_at=np.full(tracks.n_targets, -1),
             lens_fixed=settings.intrinsics_given,
             lens_refined=settings.intrinsics_given,
+            features=features,
+            feature_X=np.full((n_points, 3), np.nan),
+            feature_usable=np.ones(len(features), bool),
+            feature_attempted=np.zeros(n_points, np.int64),
         )
 
     @property
