@@ -32,6 +32,9 @@ from app.core.survey.state import FIELD_MARGIN, SurveyState
 #: A feature point is triangulated only from views that see it from directions this far
 #: apart (degrees): narrower, its depth is mostly noise.
 MIN_FEATURE_ANGLE_DEG = 1.5
+#: Views of a track more than this many frames apart belong to different runs: the
+#: track was joined by a keyframe match (`triangulate_features` checks that the runs agree).
+RUN_GAP = 3
 #: A frame registers through feature points only when this many agree on its pose.
 MIN_FEATURE_INLIERS = 20
 #: ... and at least this fraction of the points it sees.
@@ -44,10 +47,11 @@ MAX_POSITION_STD = 0.002
 
 def feature_tolerance_px(state: SurveyState) -> float:
     """How far (px) a feature view may be off and still agree with its point while the map
-    grows: four of the features' standard deviations, at least 1 px, even before the lens
-    is fitted. Tighter than the cards': a pose resting on feature points passes its error
-    on to every point triangulated from it (the sparse example walk: 3.1 mm disc RMS
-    at 1 px from the start, 18 mm with the cards' 12 px until the lens is fitted).
+    grows: the survey's own tolerance until the lens is fitted (the initial focal length
+    may be some percent off), then four of the features' standard deviations, at least
+    1 px. Tighter than the cards': a pose resting on feature points passes its error on to
+    every point triangulated from it (the centre-loop example walk: 3.2 mm disc RMS at
+    1 px, 9.1 mm at the cards' 3 px).
 
     Parameters
     ----------
@@ -59,6 +63,8 @@ def feature_tolerance_px(state: SurveyState) -> float:
     float
         The tolerance, px.
     """
+    if not state.lens_refined:
+        return state.tolerance_px
     return max(1.0, 4 * state.features.sigma_px)
 
 
@@ -146,19 +152,46 @@ def triangulate_features(state: SurveyState, min_angle_deg: float = MIN_FEATURE_
     rays = np.einsum("nji,nj->ni", R[inverse], x)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     track = features.track[obs]
-    keep = np.ones(len(obs), bool)
-    X = np.full((len(state.feature_X), 3), np.nan)
-    for _ in range(2):  # all views, then those that fit
-        X = _nearest_points(rays[keep], centres[inverse[keep]], track[keep], len(state.feature_X))
+    X = _from_longest_run(rays, centres[inverse], track, features.frame[obs], len(state.feature_X))
+    for _ in range(2):  # the longest run's point, then all the views that fit it
         err = _errors(state, features.frame[obs], X[track], features.uv[obs])
         keep = err <= feature_tolerance_px(state)  # inf behind the camera
+        X = _nearest_points(rays[keep], centres[inverse[keep]], track[keep], len(state.feature_X))
+    err = _errors(state, features.frame[obs], X[track], features.uv[obs])
+    keep = err <= feature_tolerance_px(state)
     n_views = np.bincount(track, minlength=len(X))
     n_fit = np.bincount(track[keep], minlength=len(X))
     angle = _widest_angle(rays, track, keep, len(X))
-    good = todo & (n_fit >= 2) & (2 * n_fit >= n_views) & (angle >= min_angle_deg) & np.isfinite(X[:, 0])
+    good = todo & (n_fit >= 2) & (3 * n_fit >= n_views) & (angle >= min_angle_deg) & np.isfinite(X[:, 0])
     state.feature_X[good] = X[good]
     state.feature_usable[obs[good[track] & ~keep]] = False
     return int(good.sum())
+
+
+def _from_longest_run(rays: np.ndarray, centres: np.ndarray, track: np.ndarray, frame: np.ndarray, n: int
+                      ) -> np.ndarray:
+    """(n, 3) each track's point from its longest run of views (frames at most
+    ``RUN_GAP`` apart). A feature tracker follows a point frame to frame; a track
+    with a gap was joined across the video by a keyframe match, which may be wrong (a
+    pattern repeated in the room): its runs are judged against the longest one."""
+    order = np.lexsort((frame, track))
+    t, f = track[order], frame[order]
+    new_run = np.r_[True, (t[1:] != t[:-1]) | (np.diff(f) > RUN_GAP)]
+    run = np.empty(len(order), np.int64)
+    run[order] = np.cumsum(new_run) - 1
+    run_track = np.zeros(int(run.max()) + 1 if len(run) else 0, np.int64)
+    run_track[run] = track
+    size = np.bincount(run, minlength=len(run_track))
+    points = _nearest_points(rays, centres, run, len(run_track))
+    size = np.where(np.isfinite(points[:, 0]), size, 0)
+    # The largest run of each track (ties: the first).
+    best = np.full(n, -1)
+    by_size = np.lexsort((-np.arange(len(run_track)), size))
+    best[run_track[by_size]] = by_size
+    X = np.full((n, 3), np.nan)
+    ok = best >= 0
+    X[ok] = points[best[ok]]
+    return X
 
 
 def _nearest_points(rays: np.ndarray, centres: np.ndarray, track: np.ndarray, n: int) -> np.ndarray:
@@ -241,7 +274,8 @@ def register_by_features(state: SurveyState, min_inliers: int = MIN_FEATURE_INLI
         pose = Pose.from_rvec_tvec(rvec, tvec)
         err = np.linalg.norm(rec.camera.project_map(X, pose) - uv, axis=1)
         in_front = pose.transform(X)[:, 2] > 0
-        fit = (err <= tol) & in_front
+        # The cards are judged by their own tolerance (their discs are surveyed by now).
+        fit = (err <= np.where(np.arange(len(X)) < len(mine), tol, state.tolerance_px)) & in_front
         n_fit = int(fit[: len(mine)].sum())
         if n_fit < min_inliers or n_fit < MIN_INLIER_FRACTION * len(mine):
             continue

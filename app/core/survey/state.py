@@ -351,6 +351,8 @@ class Reconstruction:
             the point not placed.
         """
         err = np.full(len(obs), np.nan)
+        if not len(obs):
+            return err
         of = tracks.frame[obs]
         order = np.argsort(of, kind="stable")
         obs_sorted = obs[order]
