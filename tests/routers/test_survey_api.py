@@ -93,6 +93,24 @@ def test_survey_of_a_rendered_room_gives_its_camera_and_discs(client: TestClient
     assert np.linalg.norm(first[1] - first[0]) == pytest.approx(0.6 * MARKER_M, rel=0.02)
 
 
+def test_survey_with_feature_tracks_maps_the_room_from_the_video(client: TestClient, room) -> None:
+    scene, _, video = room
+    env = _environment(client)
+    reply = _post_video(client, env, video, feature_tracks="true")
+    assert reply.status_code == 202, reply.text
+    body = wait_for_job(client, reply.json()["id"])
+    assert body["status"] == "succeeded", body
+    result = body["result"]
+    assert result["feature_tracks"] is True and result["n_registered"] >= 50
+    truth = {t.id: t.discs for t in scene.targets}
+    surveyed = {t["id"]: np.asarray(t["discs"]) for t in client.get(f"/environments/{env}/map").json()["targets"]}
+    assert len(surveyed) >= 12 and set(surveyed) <= set(truth)
+    ids = sorted(surveyed)
+    src, dst = np.concatenate([surveyed[i] for i in ids]), np.concatenate([truth[i] for i in ids])
+    rigid = similarity_from_points(src, dst, with_scale=False)
+    assert np.sqrt(np.mean(np.sum((rigid.apply(src) - dst) ** 2, axis=1))) < 0.01
+
+
 def test_alignment_refuses_bad_points(client: TestClient) -> None:
     env = _environment(client)
     assert client.post(f"/environments/{env}/alignment", json={"origin_target_id": 0}).status_code == 404
