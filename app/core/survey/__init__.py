@@ -15,13 +15,7 @@ from app.core.survey.points import FeatureObservations, RobustLoss
 from app.core.survey.policy import ShouldBundle, ShouldFitLens
 from app.core.survey.reconstruction import survey
 from app.core.survey.result import SurveyedTarget, SurveyResult
-from app.core.survey.state import (
-    Progress,
-    Reconstruction,
-    SurveyError,
-    SurveyStage,
-    SurveyState,
-)
+from app.core.survey.state import Progress, Reconstruction, SurveyError, SurveyStage, SurveyState
 from app.core.survey.tracks import DISC_ERROR_PX, disc_precision
 
 __all__ = [

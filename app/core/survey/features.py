@@ -27,6 +27,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from app.core.geometry import Camera, Pose
+from app.core.survey.cards import normalised
 from app.core.survey.state import FIELD_MARGIN, SurveyState
 
 #: A feature point is triangulated only from views that see it from directions this far
@@ -114,11 +115,11 @@ def triangulate_features(state: SurveyState, min_angle_deg: float = MIN_FEATURE_
     """Triangulate every feature track with new views from registered frames.
 
     Each track not yet triangulated whose usable views from registered frames grew since
-    it was last tried: the point nearest all its rays (least squares), kept when the rays
-    span ``min_angle_deg``, the point lies in front of every camera, and its views fit
-    within `feature_tolerance_px`. Views that do not fit are
-    left out and the point found again from the rest; it must keep two views and half of
-    them. The views left out are set aside (``feature_usable``).
+    it was last tried: the point nearest the rays of its longest run of consecutive views
+    (least squares), then nearest the rays of all its views that fit that point within
+    `feature_tolerance_px` (in front of the camera), twice. It is kept when two views and
+    a third of them fit it and the fitting rays span ``min_angle_deg``; the views that do
+    not fit are set aside (``feature_usable``).
 
     Parameters
     ----------
@@ -147,8 +148,7 @@ def triangulate_features(state: SurveyState, min_angle_deg: float = MIN_FEATURE_
     frames, inverse = np.unique(features.frame[obs], return_inverse=True)
     R, t = _rotations(state, frames)
     centres = -np.einsum("nji,nj->ni", R, t)
-    x = np.c_[camera.undistort_pixels(features.uv[obs]), np.ones(len(obs))]
-    x[:, :2] = (x[:, :2] - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+    x = np.c_[normalised(camera, features.uv[obs]), np.ones(len(obs))]
     rays = np.einsum("nji,nj->ni", R[inverse], x)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     track = features.track[obs]
@@ -226,9 +226,10 @@ def register_by_features(state: SurveyState, min_inliers: int = MIN_FEATURE_INLI
 
     The pose is found by RANSAC (P3P) over the frame's feature points and the discs of
     the placed cards it sees, then refined over the points that agree. It is kept when
-    ``min_inliers`` feature points and ``MIN_INLIER_FRACTION`` of them agree within the
-    survey's tolerance. The feature views and card views that do not agree are set
-    aside in that frame.
+    ``min_inliers`` feature points and ``MIN_INLIER_FRACTION`` of them agree within
+    `feature_tolerance_px` (the cards' discs within the survey's own tolerance) and they
+    pin the camera's position to ``MAX_POSITION_STD`` of their distance (`position_std`).
+    The feature views and card views that do not agree are set aside in that frame.
 
     Parameters
     ----------

@@ -29,23 +29,12 @@ import numpy as np
 from app.core.detection import DetectedTarget
 from app.core.geometry import Camera
 from app.core.survey.bundle import GROWTH_LOSS_SCALE, BundleInfo, bundle_adjust
-from app.core.survey.features import (
-    prune_features,
-    register_by_features,
-    triangulate_features,
-)
+from app.core.survey.features import prune_features, register_by_features, triangulate_features
 from app.core.survey.lens import initial_camera
 from app.core.survey.place import place_targets
 from app.core.survey.points import FeatureObservations
 from app.core.survey.policy import ShouldBundle, ShouldFitLens
-from app.core.survey.prune import (
-    HUBER_K,
-    MIN_OUTLIER_PX,
-    OUTLIER_K,
-    drop_unsupported,
-    prune,
-    whitened_spread,
-)
+from app.core.survey.prune import HUBER_K, MIN_OUTLIER_PX, OUTLIER_K, drop_unsupported, prune, whitened_spread
 from app.core.survey.register import register_frames
 from app.core.survey.result import SurveyResult, survey_result, surveyed_views
 from app.core.survey.scale import apply_metric_scale
