@@ -153,7 +153,8 @@ def _problem(rec: Reconstruction, tracks: Tracks, use: np.ndarray, free_intrinsi
     ppos[points] = np.arange(len(points))
     n_intr = 5 if free_intrinsics else 0
     op = ppos[tracks.point[obs]]
-    bounds = np.r_[0, np.flatnonzero(np.diff(tracks.frame[obs])) + 1, len(obs)]  # obs sorted by frame
+    # obs sorted by frame: one run per frame (none without observations)
+    bounds = np.r_[0, np.flatnonzero(np.diff(tracks.frame[obs])) + 1, len(obs)] if len(obs) else np.zeros(1, int)
     counts = np.diff(bounds)
     slices = [slice(bounds[k], bounds[k + 1]) for k in range(len(bounds) - 1)]
     prior_pairs = np.zeros((0, 2), int)
@@ -666,6 +667,11 @@ def bundle_adjust(
         if len(f_obs):
             return _adjust_with_features(rec, p, features, feature_X, f_obs, f_points, max_iterations, tolerance,
                                          with_covariance)
+    if not len(p.obs):  # nothing to adjust: every view set aside, or nothing registered and placed
+        return (Reconstruction(rec.camera, rec.rvec.copy(), rec.tvec.copy(), rec.X.copy()),
+                BundleInfo(iterations=0, cost=0.0, rms_px=float("nan"), obs=p.obs, points=p.points, n_intr=p.n_intr,
+                           residuals=np.zeros((0, 2)), weights=np.zeros(0), covariance=None, held_frame=-1,
+                           feature_X=None if feature_X is None else feature_X.copy()))
     intr = np.array([rec.camera.fx, rec.camera.cx, rec.camera.cy, rec.camera.dist[0], rec.camera.dist[1]])
     cams = np.c_[rec.rvec[p.frames], rec.tvec[p.frames]]
     X = rec.X[p.points].copy()
