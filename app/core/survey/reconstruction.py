@@ -53,10 +53,6 @@ from app.core.survey.tracks import collect_tracks, subsample_frames
 #: fraction of the cost: Huber's reweighting then creeps on for a hundred iterations, each
 #: worth less than rounding in the map.
 FEATURE_TOLERANCE = 1e-6
-#: Each frame's longest feature tracks that the survey keeps (`FeatureObservations.thinned`):
-#: a hundred register a frame as well as all of them (the sparse example walk: 300 of 300
-#: frames either way, the map within 5 mm), in two thirds of the time.
-FEATURES_PER_FRAME = 100
 
 
 def survey(
@@ -138,7 +134,7 @@ def survey(
     clock.report(SurveyStage.INITIAL, 0.05)
     settings = SurveySettings(marker_size_m, outlier_px, card_prior_m, intrinsics_given=intrinsics is not None)
     if features is not None:
-        features = features.in_frames(used).thinned(FEATURES_PER_FRAME)
+        features = features.in_frames(used)
     state = SurveyState.start(tracks, camera, settings, clock, warnings, features)
     bootstrap(state)
     clock.lap(SurveyStage.INITIAL)

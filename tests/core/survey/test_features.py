@@ -124,9 +124,15 @@ def test_wrong_feature_matches_do_not_move_the_map(sparse_frames: list[list[Dete
                                                     with_features: SurveyResult) -> None:
     clean = _features()
     rng = np.random.default_rng(5)
-    track = clean.track
+    track = clean.track.copy()
     uv = clean.uv.copy()
-    # 2 % of all observations matched anywhere in their frame.
+    # A tenth of the tracks merged with another point's track seen in other frames (what
+    # a wrong keyframe match does), and 2 % of all observations matched anywhere.
+    n = int(track.max()) + 1
+    for a in rng.choice(n, n // 10, replace=False):
+        b = int(rng.integers(n))
+        if b != a and not set(clean.frame[track == a].tolist()) & set(clean.frame[track == b].tolist()):
+            track[track == b] = a
     thrown = rng.random(len(uv)) < 0.02
     uv[thrown] = rng.uniform([0, 0], [SURVEY_ROOM.camera.width, SURVEY_ROOM.camera.height], (int(thrown.sum()), 2))
     wrong = FeatureObservations(clean.frame, track, uv, sigma_px=clean.sigma_px)
