@@ -54,9 +54,13 @@ class StageClock:
     progress: Progress | None = None
     timing_s: dict[str, float] = field(default_factory=dict)
     last: float = field(default_factory=time.perf_counter)
+    done: float = 0.0  # the largest fraction reported so far
 
     def report(self, stage: SurveyStage, fraction: float) -> None:
         """Tell the caller that ``stage`` is under way, ``fraction`` (clipped to [0, 1]) of the survey done.
+
+        The fraction never goes back: growth measures it by the frames registered, and
+        pruning can take some out again.
 
         Parameters
         ----------
@@ -65,8 +69,9 @@ class StageClock:
         fraction : float
             How much of the whole survey is done.
         """
+        self.done = max(self.done, float(min(max(fraction, 0.0), 1.0)))
         if self.progress is not None:
-            self.progress(stage.value, float(min(max(fraction, 0.0), 1.0)))
+            self.progress(stage.value, self.done)
 
     def lap(self, stage: SurveyStage) -> None:
         """Add the time since the last lap to ``stage``'s.

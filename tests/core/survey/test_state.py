@@ -61,8 +61,9 @@ def test_stage_clock_reports_and_times() -> None:
     clock = StageClock(lambda stage, fraction: calls.append((stage, fraction)))
     clock.report(SurveyStage.INTRINSICS, -0.5)
     clock.report(SurveyStage.REGISTER, 0.4)
+    clock.report(SurveyStage.REGISTER, 0.3)  # frames taken out again: the bar does not go back
     clock.report(SurveyStage.DONE, 1.5)
-    assert calls == [("intrinsics", 0.0), ("register", 0.4), ("done", 1.0)]
+    assert calls == [("intrinsics", 0.0), ("register", 0.4), ("register", 0.4), ("done", 1.0)]
     assert all(type(stage) is str for stage, _ in calls)  # plain names for the caller
     clock.lap(SurveyStage.BUNDLE)
     clock.lap(SurveyStage.BUNDLE)

@@ -65,6 +65,7 @@ def test_synthetic_survey_recovers_lens_and_map(room: ExampleRoom, room_walk: Ro
     assert np.median(errors) < 0.01
     # Progress: the named stages in order, fractions in [0, 1], ending at 1.
     assert stages[-1] == ("done", 1.0) and all(0.0 <= f <= 1.0 for _, f in stages)
+    assert all(a <= b for (_, a), (_, b) in zip(stages, stages[1:], strict=False))
     order = [list(SurveyStage).index(SurveyStage(s)) for s, _ in stages]
     assert order == sorted(order)
     assert set(result.timing_s) == {s.value for s in SurveyStage} - {"done"}
