@@ -28,7 +28,6 @@ import dataclasses
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,20 +37,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import Detector, load_default_classifier, warm_up  # noqa: E402
-from app.core.features import FeatureTracker, exclusion_mask  # noqa: E402
 from app.core.geometry import similarity_from_points  # noqa: E402
 from app.core.survey import FeatureObservations, SurveyError, survey  # noqa: E402
-from app.sim import (  # noqa: E402
-    WALKS,
-    ExampleWalk,
-    FrameTruth,
-    Scene,
-    camera_walk,
-    frame_truth,
-    render_walk,
-    walk_speeds,
-)
-from bench.walk_runs import detect_frames, track_errors  # noqa: E402
+from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds  # noqa: E402
+from bench.walk_runs import detect_and_track_features, detect_frames, track_errors  # noqa: E402
 
 #: A card counts as mapped-worthy when seen in this many frames over this many degrees.
 MIN_FRAMES, MIN_SPAN_DEG = 10, 5.0
@@ -123,32 +112,19 @@ def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detec
     """Render, detect and feature-track one walk, survey it with each kind of track
     (``kinds``: cards, features); track the room's tracking walk with each map."""
     room = walk.walk(seed, n_frames)
-    camera = walk.room.camera
-    tracker = FeatureTracker() if "features" in kinds else None
+    desc = f"{walk.name} room {seed}"
+    features: FeatureObservations | None = None
     track_s = 0.0
-
-    images: list[np.ndarray] = []
-    frames, truths, detect_s = detect_frames(survey_detector, _keep(room.frames(camera), images), n_frames,
-                                           f"{walk.name} room {seed}")
-    if tracker is not None:
-        start = time.perf_counter()
-        for image, detected in zip(images, frames, strict=True):
-            tracker.add(image, exclusion_mask(image.shape[:2], np.array([t.discs for t in detected]).reshape(-1, 4, 2)))
-        features = FeatureObservations.from_tracks(tracker.tracks())
-        track_s = time.perf_counter() - start
+    if "features" in kinds:
+        frames, truths, detect_s, features, track_s = detect_and_track_features(
+            survey_detector, room.frames(walk.room.camera), n_frames, desc)
+    else:
+        frames, truths, detect_s = detect_frames(survey_detector, room.frames(walk.room.camera), n_frames, desc)
     should = [seen(t) for t in truths]
     found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
     return [_survey_run(walk, room.scene, seed, kind, frames, truths, should, found,
                         detect_s + (track_s if kind == "features" else 0.0),
                         features if kind == "features" else None, tracking) for kind in kinds]
-
-
-def _keep(frames: Iterable[tuple[np.ndarray, FrameTruth]], images: list[np.ndarray]
-          ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
-    """The rendered frames, each image kept in ``images`` on the way (for the feature tracker)."""
-    for image, truth in frames:
-        images.append(image)
-        yield image, truth
 
 
 def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: list, truths: list[FrameTruth],  # type: ignore[type-arg]
