@@ -51,8 +51,8 @@ def feature_tolerance_px(state: SurveyState) -> float:
     grows: the survey's own tolerance until the lens is fitted (the initial focal length
     may be some percent off), then four of the features' standard deviations, at least
     1 px. Tighter than the cards': a pose resting on feature points passes its error on to
-    every point triangulated from it (the centre-loop example walk: 3.2 mm disc RMS at
-    1 px, 9.1 mm at the cards' 3 px).
+    every point triangulated from it, and on the centre-loop example walk the cards' 3 px
+    left maps about three times worse.
 
     Parameters
     ----------
