@@ -108,7 +108,10 @@ class MapTarget(BaseModel):
     discs: Annotated[list[Vec3], Field(min_length=4, max_length=4)] = Field(
         description="3D centres of discs 0..3 (top-left, top-right, bottom-right, bottom-left)."
     )
-    std_m: Annotated[list[NonNegativeFinite], Field(min_length=4, max_length=4)] | None = None
+    std_m: Annotated[list[Annotated[float, Field(allow_inf_nan=False, ge=0, le=1000)]],
+                     Field(min_length=4, max_length=4)] | None = Field(
+        None, description="Each disc's position uncertainty from the survey (m, 1 sigma, relative to the map as a "
+                          "whole); tracking adds it to the pose's covariance. None: the disc is taken as exact.")
     n_views: int | None = Field(None, ge=0)
 
 
@@ -235,7 +238,8 @@ class PoseOut(BaseModel):
     n_targets: int = Field(description="Targets the pose rests on (outliers excluded).")
     n_points: int = Field(description="Disc centres the pose rests on.")
     covariance_position: list[list[float]] = Field(
-        description="Covariance of the camera centre (3x3, m^2), at the noise level of the residuals.")
+        description="Covariance of the camera centre (3x3, m^2): the noise level of the residuals, plus the "
+                    "map's own uncertainty where the map gives std_m (each card off as a whole).")
     focal_px: float = Field(description="Focal length used: the camera's, or estimated when focal estimation is on (px).")
     method: str = Field(description="Pose method: nonlinear, posit, mean or single.")
     rejected_targets: list[int] = Field(description="Ids of targets refused as outliers.")

@@ -4,14 +4,14 @@ and tracking a walk with a map against the renderer's truth."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 from tqdm import tqdm
 
 from app.core.detection import DetectedTarget, Detector
 from app.core.features import FeatureTracker, exclusion_mask
-from app.core.geometry import Camera, Pose, PoseUndetermined, TargetObservation, estimate_pose
+from app.core.geometry import Camera, PoseUndetermined, Similarity, TargetObservation, estimate_pose
 from app.core.survey import FeatureObservations
 from app.sim import FrameTruth
 
@@ -50,16 +50,35 @@ def detect_and_track_features(detector: Detector, frames: Iterable[tuple[np.ndar
 
 
 def track_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
-                 camera: Camera, to_world: Callable[[Pose], Pose]) -> np.ndarray:
+                 camera: Camera, to_world: Similarity | None = None) -> np.ndarray:
     """Camera position error (m) of each frame, nan where no pose, tracked as /track does
-    (the `nonlinear` pose) with the map `discs`; `to_world` maps a pose of the map's frame
-    into the room's."""
-    errors = []
+    (the `nonlinear` pose) with the map `discs`; `to_world` takes the map's frame into
+    the room's (None: they are one)."""
+    return track_walk(frames, truths, discs, camera, to_world)[0]
+
+
+def track_walk(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
+               camera: Camera, to_world: Similarity | None = None, std: dict[int, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """`track_errors`, and each pose's normalised squared position error against the
+    truth (NEES, e^T C^-1 e with the pose's `covariance_position`; chi-square with 3
+    degrees of freedom if the covariance is honest). With `std` (each card's ``std_m``)
+    the poses carry the map's uncertainty, as /track's do with a surveyed map."""
+    errors, nees = [], []
     for detected, truth in zip(frames, truths, strict=True):
-        obs = [TargetObservation(t.id, t.discs, discs[t.id]) for t in detected if t.id in discs]
+        obs = [TargetObservation(t.id, t.discs, discs[t.id], None if std is None else std[t.id])
+               for t in detected if t.id in discs]
         try:
-            pose = to_world(estimate_pose(obs, camera).pose)
-            errors.append(float(np.linalg.norm(pose.position - truth.pose.position)))
+            estimate = estimate_pose(obs, camera)
         except PoseUndetermined:
             errors.append(np.nan)
-    return np.array(errors)
+            nees.append(np.nan)
+            continue
+        pose, covariance = estimate.pose, estimate.covariance_position
+        if to_world is not None:
+            pose = to_world.apply_pose(pose)
+            covariance = to_world.scale**2 * to_world.R @ covariance @ to_world.R.T
+        error = pose.position - truth.pose.position
+        errors.append(float(np.linalg.norm(error)))
+        nees.append(float(error @ np.linalg.solve(covariance, error)))
+    return np.array(errors), np.array(nees)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -65,6 +65,7 @@ class TrackingContext:
     camera_model: CameraModel  # the map's camera as clients get it
     discs: dict[int, np.ndarray]  # target id -> (4, 3) map coordinates
     detector_key: DetectorKey
+    std: dict[int, np.ndarray] = field(default_factory=dict)  # target id -> (4,) std_m, where the map has it
 
     @functools.cached_property
     def targets(self) -> MapTargets:
@@ -207,6 +208,7 @@ class TrackingService:
                 camera_model=document.camera,
                 discs={t.id: np.asarray(t.discs, np.float64) for t in document.targets},
                 detector_key=detector_key,
+                std={t.id: np.asarray(t.std_m, np.float64) for t in document.targets if t.std_m is not None},
             )
             self.detectors.get(session, *detector_key)  # load once, now
         _ = context.targets  # stacked for region prediction once, now
@@ -275,7 +277,8 @@ def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region]
     """(detection, pose estimate or None, why not, milliseconds spent on the pose)."""
     detection = detector.detect(gray, regions)
     observations = [
-        TargetObservation(t.id, t.discs, context.discs[t.id]) for t in detection.targets if t.id in context.discs
+        TargetObservation(t.id, t.discs, context.discs[t.id], context.std.get(t.id))
+        for t in detection.targets if t.id in context.discs
     ]
     posed = time.perf_counter()
     try:

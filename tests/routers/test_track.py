@@ -143,6 +143,24 @@ def test_garbage_from_one_client_does_not_disturb_another(client: TestClient, wo
             assert good.receive_json()["pose"] is not None
 
 
+def test_pose_covariance_carries_the_maps_uncertainty(client: TestClient, world: World, environment: int) -> None:
+    # A surveyed map is only so good: its std_m shows in every pose's covariance, and a
+    # map without it is taken as exact.
+    scene, camera, _, frames = world
+
+    def position_std_mm(std_m: float | None) -> float:
+        document = scene.map_document(camera)
+        for target in document["targets"]:
+            target["std_m"] = None if std_m is None else [std_m] * 4
+        assert client.put(f"/environments/{environment}/map", json=document).status_code == 200
+        body = client.post(f"/environments/{environment}/locate", content=frames[1],
+                           headers={"content-type": "image/jpeg"}).json()
+        return 1000 * float(np.sqrt(np.trace(np.array(body["pose"]["covariance_position"]))))
+
+    exact, surveyed = position_std_mm(None), position_std_mm(0.005)
+    assert exact < 1.0 and surveyed > 3.0, (exact, surveyed)  # 5 mm cards: mm, not the image noise's tenths
+
+
 def test_locate_one_image(client: TestClient, world: World, environment: int) -> None:
     _, _, poses, frames = world
     reply = client.post(f"/environments/{environment}/locate", content=frames[0],

@@ -63,11 +63,16 @@ class TargetObservation:
         3 bottom-left as printed).
     map : (4, 3) ndarray
         The same discs' centres in map coordinates, metres.
+    map_std : (4,) ndarray or None
+        Each disc's 3D position uncertainty in the map (RMS over the three axes, 1
+        sigma, metres: the map document's ``std_m``); None takes the map as exact.
+        With it the pose's covariance includes the map's uncertainty.
     """
 
     id: int
     image: np.ndarray  # (4, 2) pixels
     map: np.ndarray  # (4, 3) metres
+    map_std: np.ndarray | None = None  # (4,) metres
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,6 +154,23 @@ def _stack(observations: Sequence[TargetObservation]) -> tuple[np.ndarray, np.nd
         o, a, m = next((o, a, m) for o, a, m in zip(observations, images, maps, strict=True) if len(a) != len(m))
         raise PoseUndetermined(f"target {o.id}: {len(a)} image points but {len(m)} map points")
     return np.concatenate(images), np.concatenate(maps), np.array(counts)
+
+
+def _map_variance(observations: Sequence[TargetObservation]) -> np.ndarray | None:
+    """Per stacked point, the map's variance along each axis (m^2); None if no target
+    carries one. A disc's ``map_std`` is an RMS over three axes: a third of its square
+    per axis (taken isotropic). Targets without one count as exact."""
+    if all(o.map_std is None for o in observations):
+        return None
+    parts = [np.zeros(len(np.asarray(o.map).reshape(-1, 3))) if o.map_std is None
+             else np.square(np.asarray(o.map_std, np.float64).reshape(-1)) / 3.0 for o in observations]
+    return np.concatenate(parts)
+
+
+def _map_groups(counts: np.ndarray) -> np.ndarray:
+    """The group of every stacked point whose map errors move together
+    (`CARD_RIGID_MAP_ERRORS`): its target's, or its own."""
+    return _owner(counts) if CARD_RIGID_MAP_ERRORS else np.arange(int(np.sum(counts)))
 
 
 def _owner(counts: np.ndarray) -> np.ndarray:
@@ -336,8 +358,11 @@ def position_covariance(pose: Pose, covariance: np.ndarray) -> np.ndarray:
 
 def _estimate(K: np.ndarray, dist: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, world: np.ndarray,
               image: np.ndarray, with_focal: bool, method: str, ids: list[int], rejected: list[int],
-              linearised: tuple[np.ndarray, np.ndarray] | None = None, pose: Pose | None = None) -> PoseEstimate:
-    """Package a pose with its residual RMS and covariance (noise from the residuals).
+              linearised: tuple[np.ndarray, np.ndarray] | None = None, pose: Pose | None = None,
+              map_variance: np.ndarray | None = None, map_group: np.ndarray | None = None) -> PoseEstimate:
+    """Package a pose with its residual RMS and covariance (noise from the residuals,
+    plus the map's own uncertainty when ``map_variance`` gives it per point, the points
+    of one ``map_group`` moving together).
     ``linearised`` = (residual, J) at the pose when the caller has them already."""
     rvec, tvec = np.asarray(rvec, np.float64).reshape(3, 1), np.asarray(tvec, np.float64).reshape(3, 1)
     residual, J = linearised if linearised is not None else _linearise(K, dist, rvec, tvec, world, image,
@@ -349,7 +374,14 @@ def _estimate(K: np.ndarray, dist: np.ndarray, rvec: np.ndarray, tvec: np.ndarra
         raise PoseUndetermined("the geometry does not determine the pose (singular Jacobian)")
     squares = float(np.dot(residual.ravel(), residual.ravel()))
     dof = residual.size - JtJ.shape[0]
-    covariance = inverse * (squares / dof if dof > 0 else float("nan"))
+    if map_variance is not None and map_variance.any():
+        group = np.arange(len(map_variance)) if map_group is None else map_group
+        image_part, map_part = _map_covariance(inverse, J, map_variance, group)
+        # The residuals hold the map's errors too (the part the pose does not absorb):
+        # only what is left of them is the image noise.
+        covariance = inverse * (max(squares - image_part, 0.0) / dof if dof > 0 else float("nan")) + map_part
+    else:
+        covariance = inverse * (squares / dof if dof > 0 else float("nan"))
     R, dR = cv2.Rodrigues(rvec)
     t = tvec.ravel()
     if pose is None:
@@ -367,6 +399,59 @@ def _estimate(K: np.ndarray, dist: np.ndarray, rvec: np.ndarray, tvec: np.ndarra
         rejected_ids=rejected,
         method=method,
     )
+
+
+#: How a surveyed map's errors are taken to move its discs: each card's four discs
+#: together (the card prior holds the printed square, so a card is off as a whole), or
+#: each disc on its own. ``bench/bench_survey.py`` measures both against the truth.
+CARD_RIGID_MAP_ERRORS = True
+
+
+def _map_covariance(inverse: np.ndarray, J: np.ndarray, variance: np.ndarray,
+                    group: np.ndarray) -> tuple[float, np.ndarray]:
+    """What the map points' own errors do to a least-squares pose, to first order.
+
+    A map point moved by ``dX`` moves its residual by ``J_t R dX`` (``J_t``: the
+    Jacobian over the translation, since the point enters only through ``R X + t``);
+    points of one group move by one ``dX``, isotropic of variance ``v`` per axis, so
+    ``R`` drops out. The pose then moves by ``-(J^T J)^-1 J^T dr``. The map's errors
+    are shared by every frame: a pose on a surveyed map is no more precise than its
+    map, however well it fits; and a card that is off as a whole leaves no residual.
+
+    Parameters
+    ----------
+    inverse : (p, p) ndarray
+        ``(J^T J)^-1``.
+    J : (2n, p) ndarray
+        The residuals' Jacobian over (rvec, t[, f]).
+    variance : (n,) ndarray
+        Each point's map variance per axis, m^2.
+    group : (n,) ndarray of int
+        The points that move together share a group (0 .. groups - 1).
+
+    Returns
+    -------
+    expected_squares : float
+        The sum of squared residuals the map's errors leave on average (the part of
+        them the pose does not absorb).
+    covariance : (p, p) ndarray
+        The covariance of the parameters the map's errors cause.
+    """
+    n, p = len(variance), len(inverse)
+    groups = int(group.max()) + 1
+    v = np.zeros(groups)
+    np.maximum.at(v, group, variance)  # a group's points share one error: its largest variance
+    Jt = J[:, 3:6].reshape(n, 2, 3)
+    Jp = J.reshape(n, 2, p)
+    moves = np.zeros((groups, p, 3))  # d params / d (the group's shift)
+    np.add.at(moves, group, np.einsum("pq,nkq,nkj->npj", inverse, Jp, Jt))
+    covariance = np.einsum("g,gpj,gqj->pq", v, moves, moves)
+    # Residual moves per group shift: (I - J (J^T J)^-1 J^T) J_t over the group's rows.
+    rows = np.zeros((groups, n, 2, 3))
+    rows[group, np.arange(n)] = Jt
+    after = rows - np.einsum("nkp,gpj->gnkj", Jp, moves)
+    expected_squares = float(np.einsum("g,gnkj,gnkj->", v, after, after))
+    return expected_squares, covariance
 
 
 #: Points whose spread off their best-fit plane is below this fraction of their
@@ -517,6 +602,7 @@ def nonlinear(
         If the points do not determine a pose (fewer than 4, collinear, singular).
     """
     image, world, counts = _stack(observations)
+    variance, group = _map_variance(observations), _map_groups(counts)
     spread = _check_determined(world)
     n = len(observations)
     if estimate_focal and n < 2:
@@ -541,6 +627,7 @@ def nonlinear(
             _check_determined(world[keep])
             _, rvec, tvec, linearised = _fit(K, dist, world[keep], image[keep])
         world, image = world[keep], image[keep]
+        variance, group = (None, None) if variance is None else (variance[keep], group[keep])
     if estimate_focal:
         rvec, tvec, K, linearised = _refine_focal(K, dist, rvec, tvec, world, image)
     if inliers.all():
@@ -548,7 +635,8 @@ def nonlinear(
     else:
         ids = [o.id for o, k in zip(observations, inliers, strict=True) if k]
         rejected = [o.id for o, k in zip(observations, inliers, strict=True) if not k]
-    return _estimate(K, dist, rvec, tvec, world, image, estimate_focal, "nonlinear", ids, rejected, linearised)
+    return _estimate(K, dist, rvec, tvec, world, image, estimate_focal, "nonlinear", ids, rejected, linearised,
+                     map_variance=variance, map_group=group)
 
 
 def _consensus(camera: Camera, image: np.ndarray, world: np.ndarray, owner: np.ndarray, n: int,
@@ -600,11 +688,11 @@ def single(observations: Sequence[TargetObservation], camera: Camera) -> PoseEst
 
 
 def _single(observation: TargetObservation, camera: Camera) -> PoseEstimate:
-    image, world, _ = _stack([observation])
+    image, world, counts = _stack([observation])
     _check_determined(world)
     _, rvec, tvec, linearised = _fit(camera.K, camera.dist, world, image)
     return _estimate(camera.K, camera.dist, rvec, tvec, world, image, False, "single", [observation.id], [],
-                     linearised)
+                     linearised, map_variance=_map_variance([observation]), map_group=_map_groups(counts))
 
 
 #: Two optima whose rotations differ by less than this (rad, ~0.1 deg) are one: on a
@@ -728,9 +816,10 @@ def mean(observations: Sequence[TargetObservation], camera: Camera) -> PoseEstim
     _, vectors = np.linalg.eigh(quaternions.T @ quaternions)
     R = _rotation(vectors[:, -1])
     pose = Pose(R, -R @ position)
-    image, world, _ = _stack(observations)
+    image, world, counts = _stack(observations)
     return _estimate(camera.K, camera.dist, pose.rvec, pose.t, world, image, False, "mean",
-                     [o.id for o in observations], [], pose=pose)
+                     [o.id for o in observations], [], pose=pose, map_variance=_map_variance(observations),
+                     map_group=_map_groups(counts))
 
 
 def posit(observations: Sequence[TargetObservation], camera: Camera, iterations: int = 100) -> PoseEstimate:
@@ -755,13 +844,14 @@ def posit(observations: Sequence[TargetObservation], camera: Camera, iterations:
     PoseUndetermined
         If the points do not determine a pose or none lies in front of the camera.
     """
-    image, world, _ = _stack(observations)
+    image, world, counts = _stack(observations)
     spread = _check_determined(world)
     normalised = _ideal(camera, image)
     coplanar = spread[2] < 1e-3 * spread[0]
     pose = _posit_coplanar(world, normalised, iterations) if coplanar else _posit(world, normalised, iterations)
     return _estimate(camera.K, camera.dist, pose.rvec, pose.t, world, image, False, "posit",
-                     [o.id for o in observations], [], pose=pose)
+                     [o.id for o in observations], [], pose=pose, map_variance=_map_variance(observations),
+                     map_group=_map_groups(counts))
 
 
 def _posit(world: np.ndarray, x: np.ndarray, iterations: int) -> Pose:

@@ -64,25 +64,53 @@ class BundleInfo:
     feature_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) the loss's weight / sigma^2
     feature_rms_px: float = float("nan")  # reprojection RMS (2D) of the feature observations used
 
-    def disc_std(self, n_points: int) -> np.ndarray:
-        """RMS 3D standard deviation of every disc, from the marginal covariance.
+    def disc_std(self, X: np.ndarray) -> np.ndarray:
+        """RMS 3D standard deviation of every disc relative to the map, from the
+        marginal covariance.
+
+        The covariance is that of a gauge: the held frame's pose is exact, so every
+        point inherits how uncertain its position is relative to that one camera, an
+        error shared by all the discs alike. The map's frame is a choice, not a
+        measurement: a motion of the whole map is no error in it (tracking, alignment
+        and the benchmarks against the truth all see the map up to one rigid motion).
+        So the rigid motions of the adjusted points are projected out of their
+        covariance first (the least-squares gauge over the discs).
 
         Parameters
         ----------
-        n_points : int
-            The number of points in the reconstruction.
+        X : (n_points, 3) ndarray
+            The reconstruction's points.
 
         Returns
         -------
         (n_points,) ndarray
-            sqrt of each point's covariance trace (the cameras' uncertainty included);
-            nan for points not adjusted, or all when no covariance was computed.
+            sqrt of each point's covariance trace; nan for points not adjusted, or all
+            when no covariance was computed.
         """
-        std = np.full(n_points, np.nan)
+        std = np.full(len(X), np.nan)
         C = self.covariance
         if C is None:
             return std
-        diag = np.clip(np.diag(C)[self.n_intr :], 0.0, None).reshape(-1, 3)
+        points = np.asarray(X, np.float64)[self.points]
+        C = C[self.n_intr :, self.n_intr :]
+        diag: np.ndarray
+        if len(points) >= 3:
+            # G: each point's motion under a small translation (3) and rotation (3) of
+            # the whole map about its centroid; P = I - G G^+ projects those out.
+            d = points - points.mean(axis=0)
+            G = np.zeros((len(points), 3, 6))
+            G[:, :, :3] = np.eye(3)
+            G[:, 0, 4], G[:, 0, 5] = d[:, 2], -d[:, 1]
+            G[:, 1, 3], G[:, 1, 5] = -d[:, 2], d[:, 0]
+            G[:, 2, 3], G[:, 2, 4] = d[:, 1], -d[:, 0]
+            G = G.reshape(-1, 6)
+            # The diagonal of P C P^T, P = I - G G^+, without forming it (m^2, not m^3).
+            B = np.linalg.pinv(G) @ C
+            diag = (np.diag(C) - 2.0 * np.einsum("ij,ji->i", G, B)
+                    + np.einsum("ij,jk,ik->i", G, B @ np.linalg.pinv(G).T, G))
+        else:
+            diag = np.diag(C)
+        diag = np.clip(diag, 0.0, None).reshape(-1, 3)
         std[self.points] = np.sqrt(diag.sum(axis=1))
         return std
 

@@ -261,7 +261,7 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     """
     rec, tracks, views = state.reconstruction, state.tracks, state.views
     registered = rec.registered()
-    std = info.disc_std(len(rec.X)) * scale.factor
+    std = info.disc_std(rec.X) * scale.factor
     err = rec.errors(tracks, info.obs)
     rms = float(np.sqrt(np.nanmean(err**2)))
     results: list[SurveyedTarget] = []

@@ -111,6 +111,25 @@ def test_covariance_matches_the_observed_scatter() -> None:
     assert 0.75 < np.mean(predicted) / observed < 1.33, (np.mean(predicted), observed)
 
 
+def test_covariance_covers_the_errors_of_a_surveyed_map() -> None:
+    # A surveyed card is off as a whole (here 3 mm RMS, as its std_m says), the same in
+    # every frame: the residuals cannot show it, the map's std_m must.
+    rng = np.random.default_rng(6)
+    map_std = 0.003
+    nees = {"map exact": [], "map std": []}
+    for _ in range(300):
+        observations = _observe(rng, 0.1)[:3]
+        surveyed = [TargetObservation(o.id, o.image, o.map + rng.normal(0, map_std / np.sqrt(3), 3))
+                    for o in observations]
+        for name, std in (("map exact", None), ("map std", np.full(4, map_std))):
+            estimate = estimate_pose([TargetObservation(o.id, o.image, o.map, std) for o in surveyed], CAMERA)
+            error = estimate.pose.position - TRUE_POSE.position
+            nees[name].append(float(error @ np.linalg.solve(estimate.covariance_position, error)))
+    # chi-square with 3 degrees of freedom: median 2.37
+    assert 1.8 < np.median(nees["map std"]) < 3.2, np.median(nees["map std"])
+    assert np.median(nees["map exact"]) > 10, np.median(nees["map exact"])
+
+
 @pytest.mark.parametrize(
     "observations,message",
     [

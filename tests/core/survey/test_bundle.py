@@ -114,11 +114,11 @@ def test_covariance_gives_each_disc_an_uncertainty(true_state: SurveyState) -> N
     again, info = bundle_adjust(rec, true_state.tracks, use, False, PRIOR, max_iterations=0, with_covariance=True)
     np.testing.assert_array_equal(again.X, rec.X)  # no iterations: the map stays
     assert info.covariance is not None and info.covariance.shape == (3 * len(info.points),) * 2
-    std = info.disc_std(len(rec.X))
+    std = info.disc_std(rec.X)
     assert np.isfinite(std).all() and 1e-4 < np.median(std) < 0.02  # 0.1 px at 1-3 m: mm
     # Without the covariance: no uncertainty.
     _, plain = bundle_adjust(rec, true_state.tracks, use, False, PRIOR, max_iterations=0)
-    assert plain.covariance is None and np.isnan(plain.disc_std(len(rec.X))).all()
+    assert plain.covariance is None and np.isnan(plain.disc_std(rec.X)).all()
 
 
 # --- feature points: the second kind of track ---------------------------------------------
@@ -208,7 +208,7 @@ def test_feature_points_and_the_lens(true_state: SurveyState, room: ExampleRoom)
     np.testing.assert_allclose(out.camera.K, camera.K, atol=1e-6)
     np.testing.assert_allclose(out.camera.dist, camera.dist, atol=1e-9)
     assert info.covariance is not None and info.covariance.shape == (5 + 3 * len(info.points),) * 2
-    assert np.isfinite(info.disc_std(len(out.X))).all()
+    assert np.isfinite(info.disc_std(out.X)).all()
 
 
 def test_the_robust_loss_keeps_wrong_matches_from_moving_the_map(true_state: SurveyState, room: ExampleRoom) -> None:
