@@ -11,10 +11,11 @@ Modules:
   middle, a pan), hand-held shake and the motion blur of each exposure.
 * `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG) and
   their named presets.
+* `app.sim.video`: a walk recorded as a phone records it (H.264 through libx264).
 * `app.sim.examples`: the named example rooms and walks the benchmarks and tests measure on.
 
-The photographs on walls and backgrounds need scikit-image: ``pip install
-'fidotrack[sim]'``. The package's name `render` is the function; import the render
+The photographs on walls and backgrounds need scikit-image and the video PyAV: ``pip
+install 'fidotrack[sim]'``. The package's name `render` is the function; import the render
 module's other names from it directly (``from app.sim.render import visible_points``).
 """
 
@@ -45,12 +46,14 @@ from app.sim.scenes import (
     room_scene,
     scenario_frame,
 )
+from app.sim.video import PHONE, PhoneVideo, record
 from app.sim.walks import ExposureBlur, Shake, Walk, WalkKind, camera_walk, draw_walk, walk_speeds
 
 __all__ = [
     "BENCH_CAMERA",
     "BENCH_ROOM",
     "EXAMPLES",
+    "PHONE",
     "PLAIN_ROOM",
     "PRESETS",
     "SCENARIOS",
@@ -64,6 +67,7 @@ __all__ = [
     "ExposureBlur",
     "FrameScenario",
     "FrameTruth",
+    "PhoneVideo",
     "PlacedTarget",
     "RoomWalk",
     "Scene",
@@ -75,6 +79,7 @@ __all__ = [
     "camera_walk",
     "draw_walk",
     "frame_truth",
+    "record",
     "render",
     "render_frame",
     "render_walk",

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.core.geometry import Camera, Pose
 from app.sim.scenes import CardPlacement, FrameTruth, Scene, WallFinish, render_walk, room_scene
+from app.sim.video import PhoneVideo
 from app.sim.walks import ExposureBlur, Shake, WalkKind, draw_walk
 
 __all__ = [
@@ -69,8 +70,8 @@ class RoomWalk:
     rng: np.random.Generator
     blur: list[ExposureBlur] | None = None
 
-    def frames(self, camera: Camera, degradation: str = "default",
-               supersample: int = 2) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+    def frames(self, camera: Camera, degradation: str = "default", supersample: int = 2,
+               video: PhoneVideo | None = None) -> Iterator[tuple[np.ndarray, FrameTruth]]:
         """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
         drawn on from `rng`.
 
@@ -82,13 +83,16 @@ class RoomWalk:
             Name of a degradation preset.
         supersample : int, optional
             Samples per pixel along each axis.
+        video : PhoneVideo, optional
+            Record the walk as a phone's video (H.264) instead of frame by frame.
 
         Yields
         ------
         image : (height, width) ndarray of uint8
         truth : FrameTruth
         """
-        yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur)
+        yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur,
+                               video=video)
 
 
 @dataclass(frozen=True)

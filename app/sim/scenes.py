@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
@@ -26,7 +27,8 @@ from app.core.geometry import Camera, Pose
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family, marker_layout, render_card
 from app.sim import degrade
 from app.sim.render import TexturedQuad, render
-from app.sim.walks import ExposureBlur, camera_walk
+from app.sim.video import PhoneVideo, record
+from app.sim.walks import FPS, ExposureBlur, camera_walk
 
 __all__ = [
     "CARD_PLACEMENTS",
@@ -1077,6 +1079,8 @@ def render_walk(
     degradation: str = "default",
     supersample: int = 2,
     blur: Sequence[ExposureBlur] | None = None,
+    video: PhoneVideo | None = None,
+    fps: float = FPS,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1096,6 +1100,12 @@ def render_walk(
         Each frame's motion blur from the camera's motion (`Walk.exposure_blur`): it
         replaces the preset's random one, the frame's other degradations are drawn as
         without it.
+    video : PhoneVideo, optional
+        Record the walk as a phone's video (`video.record`: H.264 encoded and decoded)
+        instead of storing each frame as the preset says (its JPEG is left out; every
+        other degradation is drawn as without it).
+    fps : float, optional
+        Frames a second, for the video's bit budget.
 
     Yields
     ------
@@ -1110,8 +1120,24 @@ def render_walk(
     ranges = degrade.PRESETS[degradation]
     if blur is not None and len(blur) != len(poses):
         raise ValueError(f"blur gives {len(blur)} frames for {len(poses)} poses")
-    for k, pose in enumerate(poses):
-        sampled = ranges.sample(rng)
-        if blur is not None:
-            sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
-        yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample)
+    def frames() -> Iterator[tuple[np.ndarray, FrameTruth]]:
+        for k, pose in enumerate(poses):
+            sampled = ranges.sample(rng)
+            if blur is not None:
+                sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
+            if video is not None:
+                sampled = dataclasses.replace(sampled, jpeg_quality=None)
+            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample)
+
+    if video is None:
+        yield from frames()
+        return
+    truths: deque[FrameTruth] = deque()
+
+    def images() -> Iterator[np.ndarray]:
+        for image, truth in frames():
+            truths.append(truth)
+            yield image
+
+    for image in record(images(), fps, video):
+        yield image, truths.popleft()

@@ -1,0 +1,180 @@
+"""The survey on footage recorded as frames and as a phone's video, side by side.
+
+People film a room with a phone's camera app: what reaches the survey is H.264 video,
+not a stack of stills. For each room (`app.sim.examples.BENCH_ROOM`, seeds) the same
+calibration walk (the same poses, lighting, noise and blur) is rendered twice: stored
+frame by frame as the degradation preset says (half the frames as JPEG at quality
+80-95: today's benches), and recorded as a phone records video (`app.sim.video.record`:
+H.264 through libx264 at a phone's bits per pixel, the preset's JPEG left out). On
+each, the survey job's detector (fitted disc centres) and the survey, self-calibrating
+and with the true intrinsics; then the room's tracking walk (frames, as a `/track`
+client sends them) is tracked with each surveyed map.
+
+Columns: *disc-centre error*: the detected disc centres against the true projections
+(px; every disc of every card detected whole and identified, median / 90th percentile);
+*cards found*: cards found per card seen whole (facing the camera by more than 0.3,
+discs over 4 px); *focal error*, *principal point*: the self-calibrated camera against
+the true one; *disc RMS*: the map against the truth after the best similarity (mm), self-
+calibrated and with the true intrinsics, and their ratio; *NEES*: the tracking walk's
+normalised squared position errors with the self-calibrated map, its `std_m` included
+(median; chi-square with 3 degrees of freedom: 2.37 if honest).
+
+Run: ``.venv/bin/python bench/bench_recording.py [--seeds 0 1 2 3] [--frames 300]
+[--bits-per-pixel 0.28]`` (markdown tables).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
+from app.core.geometry import similarity_from_points  # noqa: E402
+from app.core.survey import survey  # noqa: E402
+from app.sim import BENCH_CAMERA, BENCH_ROOM, FrameTruth, PhoneVideo, camera_walk, render_walk  # noqa: E402
+from bench.walk_runs import detect_frames, track_walk  # noqa: E402
+
+RECORDINGS = ("frames", "phone video")
+
+
+@dataclass
+class Run:
+    """One room recorded one way: what the detector and the survey made of it."""
+
+    seed: int
+    recording: str
+    disc_errors_px: np.ndarray  # every disc of every card detected whole and identified
+    found: int  # cards found among those seen whole
+    seen: int
+    focal_pct: float
+    principal_px: float
+    disc_rms_mm: float
+    disc_rms_true_intrinsics_mm: float
+    nees: np.ndarray
+    seconds: float
+
+
+def seen_whole(truth: FrameTruth) -> dict[int, np.ndarray]:
+    """The cards a detector should find in a frame, with their true disc projections."""
+    return {t.id: t.discs_px for t in truth.targets
+            if t.visible and not t.occluded and t.facing_cos > 0.3 and t.disc_diameter_px > 4.0}
+
+
+def disc_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth]) -> tuple[np.ndarray, int, int]:
+    """Distances (px) of the detected disc centres from the true ones, and the cards
+    found and seen whole."""
+    errors, found, seen = [], 0, 0
+    for detected, truth in zip(frames, truths, strict=True):
+        should = seen_whole(truth)
+        seen += len(should)
+        for t in detected:
+            if t.id in should:
+                found += 1
+                errors.append(np.linalg.norm(t.discs - should[t.id], axis=1))
+    return (np.concatenate(errors) if errors else np.zeros(0)), found, seen
+
+
+def disc_rms_mm(result, truth: dict[int, np.ndarray]) -> float:  # type: ignore[no-untyped-def]
+    """The surveyed discs against the true ones after the best similarity, mm."""
+    src = np.concatenate([t.discs for t in result.targets])
+    dst = np.concatenate([truth[t.id] for t in result.targets])
+    similar = similarity_from_points(src, dst)
+    return 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
+
+
+def run_room(seed: int, n_frames: int, n_tracking: int, video: PhoneVideo, detector: Detector,
+             survey_detector: Detector) -> list[Run]:
+    """Both recordings of one room's calibration walk, surveyed and tracked with."""
+    track_rng = np.random.default_rng([seed, 1])
+    room = BENCH_ROOM.walk(seed, n_frames, kind="calibration")
+    scene = room.scene
+    track_poses = camera_walk(track_rng, scene.room_size, n_tracking, kind="tracking")
+    t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, BENCH_CAMERA, track_poses, track_rng),
+                                          n_tracking, f"room {seed}: tracking walk")
+    truth = {t.id: t.discs for t in scene.targets}
+    runs = []
+    for recording in RECORDINGS:
+        # The same walk drawn afresh: the same poses, degradations and noise.
+        room = BENCH_ROOM.walk(seed, n_frames, kind="calibration")
+        frames, truths, detect_s = detect_frames(
+            survey_detector, room.frames(BENCH_CAMERA, video=video if recording == "phone video" else None),
+            n_frames, f"room {seed}: {recording}")
+        errors, found, seen = disc_errors(frames, truths)
+        start = time.perf_counter()
+        result = survey(frames, BENCH_CAMERA.width, BENCH_CAMERA.height, BENCH_ROOM.marker_size_m)
+        seconds = detect_s + time.perf_counter() - start
+        fixed = survey(frames, BENCH_CAMERA.width, BENCH_CAMERA.height, BENCH_ROOM.marker_size_m,
+                       intrinsics=BENCH_CAMERA)
+        cam = result.camera
+        src = np.concatenate([t.discs for t in result.targets])
+        dst = np.concatenate([truth[t.id] for t in result.targets])
+        rigid = similarity_from_points(src, dst, with_scale=False)
+        nees = track_walk(t_frames, t_truths, {t.id: t.discs for t in result.targets}, cam, rigid,
+                          {t.id: t.std_m for t in result.targets})[1]
+        runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / BENCH_CAMERA.fx - 1),
+                        float(np.hypot(cam.cx - BENCH_CAMERA.cx, cam.cy - BENCH_CAMERA.cy)),
+                        disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)], seconds))
+    return runs
+
+
+def row(label: str, recording: str, runs: list[Run]) -> str:
+    errors = np.concatenate([r.disc_errors_px for r in runs])
+    nees = np.concatenate([r.nees for r in runs])
+    self_cal = np.median([r.disc_rms_mm for r in runs])
+    fixed = np.median([r.disc_rms_true_intrinsics_mm for r in runs])
+    return (f"| {label} | {recording} | {np.median(errors):.3f} / {np.percentile(errors, 90):.3f} "
+            f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % "
+            f"| {max(abs(r.focal_pct) for r in runs):.3f} % | {max(r.principal_px for r in runs):.2f} "
+            f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} "
+            f"| {np.mean([r.seconds for r in runs]):.1f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--frames", type=int, default=300, help="calibration walk length")
+    parser.add_argument("--tracking-frames", type=int, default=100)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="rooms")
+    parser.add_argument("--bits-per-pixel", type=float, default=PhoneVideo().bits_per_pixel,
+                        help="the phone video's bits per pixel and frame")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    detector = Detector(classifier=load_default_classifier())
+    warm_up()
+    survey_detector = dataclasses.replace(detector, fit_discs=True)
+    video = PhoneVideo(bits_per_pixel=args.bits_per_pixel)
+    started = time.perf_counter()
+    runs = [run for seed in args.seeds
+            for run in run_room(seed, args.frames, args.tracking_frames, video, detector, survey_detector)]
+    bit_rate = video.bit_rate(BENCH_CAMERA.width, BENCH_CAMERA.height, 30.0)
+    print(f"\nRecording: the bench room, {args.frames}-frame calibration walks at 30 a second, 640x480, "
+          f"f 820 px, k1 -0.12; phone video: H.264 (libx264, {video.preset}, Main, no B-frames, keyframe every "
+          f"{video.keyframe_s:g} s) at {video.bits_per_pixel:g} bits per pixel ({bit_rate / 1e6:.1f} Mbit/s); "
+          f"tracking walks of {args.tracking_frames} frames; {time.perf_counter() - started:.0f} s in all\n")
+    print("| room | recording | disc-centre error, median / p90 (px) | cards found | focal error | "
+          "principal point (px) | disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median "
+          "| detection + survey (s) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for seed in args.seeds:
+        for recording in RECORDINGS:
+            print(row(str(seed), recording, [r for r in runs if r.seed == seed and r.recording == recording]))
+    for recording in RECORDINGS:
+        print(row("all (worst focal and principal point)", recording, [r for r in runs if r.recording == recording]))
+    frames_runs = [r for r in runs if r.recording == "frames"]
+    video_runs = [r for r in runs if r.recording == "phone video"]
+    ratio = (np.median(np.concatenate([r.disc_errors_px for r in video_runs]))
+             / np.median(np.concatenate([r.disc_errors_px for r in frames_runs])))
+    print(f"\nphone video / frames: disc-centre error (median) {ratio:.2f}, disc RMS (median over rooms) "
+          f"{np.median([r.disc_rms_mm for r in video_runs]) / np.median([r.disc_rms_mm for r in frames_runs]):.2f}")
+
+
+if __name__ == "__main__":
+    main()
