@@ -15,7 +15,8 @@ Columns: *disc-centre error*: the detected disc centres against the true project
 *cards found*: cards found per card seen whole (facing the camera by more than 0.3,
 discs over 4 px); *focal error*, *principal point*: the self-calibrated camera against
 the true one; *disc RMS*: the map against the truth after the best similarity (mm), self-
-calibrated and with the true intrinsics, and their ratio; *NEES*: the tracking walk's
+calibrated and with the true intrinsics, and their ratio; the principal point's error
+comes with the survey's own standard deviation (the larger of x and y); *NEES*: the tracking walk's
 normalised squared position errors with the self-calibrated map, its `std_m` included
 (median; chi-square with 3 degrees of freedom: 2.37 if honest).
 
@@ -57,6 +58,7 @@ class Run:
     seen: int
     focal_pct: float
     principal_px: float
+    principal_std_px: float  # the survey's own 1 sigma, the larger of x and y
     disc_rms_mm: float
     disc_rms_true_intrinsics_mm: float
     nees: np.ndarray
@@ -122,6 +124,7 @@ def run_room(seed: int, n_frames: int, n_tracking: int, video: PhoneVideo, detec
                           {t.id: t.std_m for t in result.targets})[1]
         runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / BENCH_CAMERA.fx - 1),
                         float(np.hypot(cam.cx - BENCH_CAMERA.cx, cam.cy - BENCH_CAMERA.cy)),
+                        float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
                         disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)], seconds))
     return runs
 
@@ -134,6 +137,7 @@ def row(label: str, recording: str, runs: list[Run]) -> str:
     return (f"| {label} | {recording} | {np.median(errors):.3f} / {np.percentile(errors, 90):.3f} "
             f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % "
             f"| {max(abs(r.focal_pct) for r in runs):.3f} % | {max(r.principal_px for r in runs):.2f} "
+            f"({max(r.principal_std_px for r in runs):.2f}) "
             f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} "
             f"| {np.mean([r.seconds for r in runs]):.1f} |")
 
@@ -160,7 +164,7 @@ def main() -> None:
           f"{video.keyframe_s:g} s) at {video.bits_per_pixel:g} bits per pixel ({bit_rate / 1e6:.1f} Mbit/s); "
           f"tracking walks of {args.tracking_frames} frames; {time.perf_counter() - started:.0f} s in all\n")
     print("| room | recording | disc-centre error, median / p90 (px) | cards found | focal error | "
-          "principal point (px) | disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median "
+          "principal point error (reported 1 sigma) (px) | disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median "
           "| detection + survey (s) |")
     print("|---|---|---|---|---|---|---|---|---|")
     for seed in args.seeds:

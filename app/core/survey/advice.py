@@ -26,6 +26,10 @@ PAN_RADIUS_M = 0.10
 PAN_FRACTION = 0.9
 #: How many mapped neighbours the advice names.
 N_NEIGHBOURS = 2
+#: A principal point less certain than this (1 sigma, px, either axis) is told: off by
+#: that much, every pose is tilted by it over the focal length (0.07 degrees for 1 px at
+#: f 820 px: 3 mm sideways at 3 m).
+PRINCIPAL_POINT_STD_PX = 0.5
 
 
 class WarningKind(enum.Enum):
@@ -201,3 +205,29 @@ def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: n
                 f"{'them' if len(ids) > 1 else 'it'} in the same shot as card {_either(near)} "
                 f"(the nearest mapped {'neighbours' if len(near) > 1 else 'neighbour'})")))
     return out
+
+
+def lens_warning(intrinsics_std: np.ndarray | None) -> str | None:
+    """The warning for a principal point the survey could not pin down, or None.
+
+    Parameters
+    ----------
+    intrinsics_std : (5,) ndarray or None
+        1 sigma of the adjusted ``[f, cx, cy, k1, k2]``; None when the intrinsics were
+        given (nothing to warn about).
+
+    Returns
+    -------
+    str or None
+        What is weak and what to do: film with the camera rolled and the cards in the
+        image's corners, or give the intrinsics.
+    """
+    if intrinsics_std is None:
+        return None
+    worst = float(max(intrinsics_std[1], intrinsics_std[2]))
+    if not worst > PRINCIPAL_POINT_STD_PX:
+        return None
+    return (f"the lens's principal point is poorly determined (+/- {worst:.1f} px, 1 sigma): every pose is tilted by "
+            f"as much; film again with the camera also rolled about its axis and cards in the corners of the image, "
+            f"or give the camera's intrinsics")
+

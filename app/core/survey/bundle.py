@@ -64,6 +64,22 @@ class BundleInfo:
     feature_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) the loss's weight / sigma^2
     feature_rms_px: float = float("nan")  # reprojection RMS (2D) of the feature observations used
 
+    def intrinsics_std(self) -> np.ndarray | None:
+        """Standard deviations of the adjusted intrinsics, from the marginal covariance.
+
+        Intrinsics do not change with a rigid motion or a scaling of the whole map, so
+        the gauge (the held frame) does not enter them.
+
+        Returns
+        -------
+        (5,) ndarray or None
+            1 sigma of ``[f, cx, cy, k1, k2]`` (px, px, px, -, -); None when the
+            intrinsics were held or no covariance was computed.
+        """
+        if self.covariance is None or self.n_intr != 5:
+            return None
+        return np.sqrt(np.clip(np.diag(self.covariance)[:5], 0.0, None))
+
     def disc_std(self, X: np.ndarray) -> np.ndarray:
         """RMS 3D standard deviation of every disc relative to the map, from the
         marginal covariance.

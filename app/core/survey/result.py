@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from app.core.geometry import Camera, Pose
-from app.core.survey.advice import MapWarning, TargetViews, map_advice
+from app.core.survey.advice import MapWarning, TargetViews, lens_warning, map_advice
 from app.core.survey.bundle import BundleInfo
 from app.core.survey.cards import max_angle_deg
 from app.core.survey.features import feature_groups
@@ -65,6 +65,7 @@ class SurveyResult:
     n_rejected_views: int  # (frame, target) views dropped as not fitting
     scale_residual_m: float  # RMS of the card disc-distance residuals after scaling
     timing_s: dict[str, float] = field(default_factory=dict)
+    intrinsics_std: np.ndarray | None = None  # (5,) 1 sigma of [f, cx, cy, k1, k2] (px, px, px, -, -); None: fixed
 
     @property
     def n_registered(self) -> int:
@@ -120,8 +121,10 @@ class SurveyResult:
         Returns
         -------
         dict
-            Frames, registered frames, targets, RMS, the lens, warnings and timing.
+            Frames, registered frames, targets, RMS, the lens and its standard deviations
+            (``intrinsics_std``: None when the intrinsics were given), warnings and timing.
         """
+        std = self.intrinsics_std
         return {
             "n_frames": len(self.frames_used),
             "n_registered": self.n_registered,
@@ -130,6 +133,9 @@ class SurveyResult:
             "focal_px": self.camera.fx,
             "principal_point": [self.camera.cx, self.camera.cy],
             "dist": self.camera.dist.tolist(),
+            "intrinsics_std": None if std is None else {
+                "focal_px": float(std[0]), "principal_point_px": [float(std[1]), float(std[2])],
+                "k1": float(std[3]), "k2": float(std[4])},
             "warnings": list(self.warnings),
             "timing_s": dict(self.timing_s),
         }
@@ -275,6 +281,10 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
                                       len(frames_t), angle, distance))
     camera_centres = np.array([rec.pose(f).position for f in np.flatnonzero(registered)]).reshape(-1, 3)
     state.warnings += map_warnings(results, tracks, views, surveyed, camera_centres, feature_groups(state))
+    lens_std = info.intrinsics_std()
+    warning = lens_warning(lens_std)
+    if warning is not None:
+        state.warnings.append(warning)
     trajectory: list[Pose | None] = [None] * n_input_frames
     for fi, index in enumerate(used_frames):
         if registered[fi]:
@@ -283,5 +293,5 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         camera=rec.camera, targets=results, rms_px=rms, trajectory=trajectory, warnings=state.warnings,
         intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
         n_observations=len(info.obs), n_rejected_views=surveyed.n_rejected,
-        scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s,
+        scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s, intrinsics_std=lens_std,
     )

@@ -13,6 +13,7 @@ from app.core.survey.advice import (
     MapWarning,
     TargetViews,
     WarningKind,
+    lens_warning,
     map_advice,
 )
 from app.core.survey.bundle import bundle_adjust
@@ -192,3 +193,11 @@ def test_cards_nearly_all_without_baseline_are_a_pan(true_state: SurveyState) ->
     few = [_target(i, (float(i), 0.0, 0.0), baseline=0.5 if k < 2 else 30.0) for k, i in enumerate(ids)]
     advice = map_advice(few, tracks, views, surveyed.used, surveyed.targets, apart, 3, 2.0)
     assert [(w.kind, w.target_ids) for w in advice] == [(WarningKind.NARROW, (i,)) for i in ids[:2]]
+
+
+def test_a_poorly_determined_principal_point_is_told() -> None:
+    assert lens_warning(None) is None  # intrinsics given: nothing to tell
+    assert lens_warning(np.array([0.5, 0.2, 0.3, 1e-3, 1e-3])) is None
+    message = lens_warning(np.array([3.0, 0.4, 1.7, 1e-3, 1e-3]))
+    assert message is not None and "+/- 1.7 px" in message and "intrinsics" in message
+

@@ -49,6 +49,12 @@ def test_synthetic_survey_recovers_lens_and_map(room: ExampleRoom, room_walk: Ro
     assert abs(result.camera.fx / camera.fx - 1) < 0.003, result.camera
     assert abs(result.camera.dist[0] - camera.dist[0]) < 0.02
     assert np.hypot(result.camera.cx - camera.cx, result.camera.cy - camera.cy) < 5.0
+    # Each intrinsic comes with its standard deviation, which covers its error.
+    std = result.intrinsics_std
+    assert std is not None and (std > 0).all()
+    errors = np.abs([result.camera.fx - camera.fx, result.camera.cx - camera.cx, result.camera.cy - camera.cy])
+    assert (errors < 4 * std[:3]).all(), (errors, std)
+    assert result.summary()["intrinsics_std"]["principal_point_px"] == [std[1], std[2]]
     assert len(result.targets) == len({t.id for f in frames for t in f})
     # Metric without any scale fitting to the truth: the card layout fixes it.
     assert _disc_rms(result, scene) < 0.003
@@ -181,7 +187,8 @@ def test_oblique_cards_survey_to_the_noise(oblique_room: tuple[Scene, Frames]) -
 def test_fixed_intrinsics_are_held(room: ExampleRoom, room_walk: RoomWalk,
                                    synthetic_frames: SyntheticFrames) -> None:
     result = survey(synthetic_frames(0.1, 2), 640, 480, room.marker_size_m, intrinsics=room.camera)
-    assert result.intrinsics_fixed
+    assert result.intrinsics_fixed and result.intrinsics_std is None
+    assert result.summary()["intrinsics_std"] is None
     assert result.camera == room.camera
     assert _disc_rms(result, room_walk.scene) < 0.005
 
