@@ -35,6 +35,7 @@ Range = tuple[float, float]
 
 __all__ = [
     "BLUR",
+    "BRIGHT",
     "DARK",
     "DEFAULT",
     "FULL",
@@ -942,6 +943,7 @@ class DegradationRanges:
     DEFAULT: ClassVar[DegradationRanges]
     BLUR: ClassVar[DegradationRanges]
     DARK: ClassVar[DegradationRanges]
+    BRIGHT: ClassVar[DegradationRanges]
     FULL: ClassVar[DegradationRanges]
 
     def __post_init__(self) -> None:
@@ -980,7 +982,7 @@ class DegradationRanges:
 
         Parameters
         ----------
-        name : {"none", "default", "blur", "dark", "full"}
+        name : {"none", "default", "blur", "dark", "bright", "full"}
 
         Returns
         -------
@@ -1099,6 +1101,13 @@ DARK = DegradationRanges(
     shot_scale=(2e-4, 1e-3),
 )
 
+#: Bright light: 1.5-2.5 times normal exposure, so the card's white paper (and lit walls)
+#: clip at the sensor's full scale, with a little read noise.
+BRIGHT = DegradationRanges(
+    gain=(1.5, 2.5),
+    read_sigma=(0.002, 0.008),
+)
+
 #: Everything, for training: the whole range of every parameter.
 FULL = DegradationRanges(
     gain=(0.06, 2.0),
@@ -1126,6 +1135,7 @@ DegradationRanges.NONE = NONE
 DegradationRanges.DEFAULT = DEFAULT
 DegradationRanges.BLUR = BLUR
 DegradationRanges.DARK = DARK
+DegradationRanges.BRIGHT = BRIGHT
 DegradationRanges.FULL = FULL
 
 #: The named presets, by name.
@@ -1134,5 +1144,6 @@ PRESETS: dict[str, DegradationRanges] = {
     "default": DEFAULT,
     "blur": BLUR,
     "dark": DARK,
+    "bright": BRIGHT,
     "full": FULL,
 }

@@ -71,7 +71,8 @@ class RoomWalk:
     blur: list[ExposureBlur] | None = None
 
     def frames(self, camera: Camera, degradation: str = "default", supersample: int = 2,
-               video: PhoneVideo | None = None) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+               video: PhoneVideo | None = None, follow_path: bool = False
+               ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
         """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
         drawn on from `rng`.
 
@@ -85,6 +86,9 @@ class RoomWalk:
             Samples per pixel along each axis.
         video : PhoneVideo, optional
             Record the walk as a phone's video (H.264) instead of frame by frame.
+        follow_path : bool, optional
+            Render each frame along its exposure's path rather than smearing it
+            straight (walks with an exposure only; several renders a frame).
 
         Yields
         ------
@@ -92,7 +96,7 @@ class RoomWalk:
         truth : FrameTruth
         """
         yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur,
-                               video=video)
+                               video=video, follow_path=follow_path)
 
 
 @dataclass(frozen=True)

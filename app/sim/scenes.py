@@ -28,7 +28,7 @@ from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family,
 from app.sim import degrade
 from app.sim.render import TexturedQuad, render
 from app.sim.video import PhoneVideo, record
-from app.sim.walks import FPS, ExposureBlur, camera_walk
+from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average
 
 __all__ = [
     "CARD_PLACEMENTS",
@@ -882,6 +882,7 @@ def render_frame(
     degradation: degrade.Degradation | None = None,
     occlusion_probability: float = 0.0,
     supersample: int = 2,
+    exposure: Sequence[Pose] = (),
 ) -> tuple[np.ndarray, FrameTruth]:
     """Render one frame and its ground truth.
 
@@ -900,6 +901,10 @@ def render_frame(
         whose centre it covers are marked not visible.
     supersample : int, optional
         Samples per pixel along each axis (`render`).
+    exposure : sequence of Pose, optional
+        The camera's poses through the exposure, evenly in time: the frame is the mean
+        of their renders, as a sensor integrates the light while the camera moves (the
+        truth stays `pose`'s: give the exposure-averaged pose, `walks.exposure_average`).
 
     Returns
     -------
@@ -907,7 +912,11 @@ def render_frame(
         The greyscale frame.
     truth : FrameTruth
     """
-    image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
+    if exposure:
+        image = np.mean([render(camera, p, scene.quads(), background=0.5, supersample=supersample)
+                         for p in exposure], axis=0)
+    else:
+        image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
     truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
     visible = truth.visible_targets()
     if visible and occlusion_probability > 0 and rng.random() < occlusion_probability:
@@ -995,6 +1004,7 @@ SCENARIOS: dict[str, FrameScenario] = {
         FrameScenario("far", distance_m=(4.0, 8.0), tilt_deg=(0.0, 40.0)),
         FrameScenario("blur", degradation="blur"),
         FrameScenario("dark", degradation="dark"),
+        FrameScenario("bright", distance_m=(1.5, 10.0), tilt_deg=(0.0, 50.0), degradation="bright"),
         FrameScenario("clutter", n_targets=(1, 2), clutter_tiles=(8, 10)),
         FrameScenario("specular", specular_on_target=True),
         FrameScenario("occluded", n_targets=(2, 3), occlusion_probability=1.0),
@@ -1081,6 +1091,7 @@ def render_walk(
     blur: Sequence[ExposureBlur] | None = None,
     video: PhoneVideo | None = None,
     fps: float = FPS,
+    follow_path: bool = False,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1106,6 +1117,11 @@ def render_walk(
         other degradation is drawn as without it).
     fps : float, optional
         Frames a second, for the video's bit budget.
+    follow_path : bool, optional
+        With `blur`: render each frame along its exposure's path (`ExposureBlur.path`,
+        the mean of the renders from the poses through the exposure, the truth at their
+        average pose) instead of smearing it straight: a roll, a turn and the depths
+        across the image blur each part of it as they do in a camera.
 
     Yields
     ------
@@ -1123,11 +1139,16 @@ def render_walk(
     def frames() -> Iterator[tuple[np.ndarray, FrameTruth]]:
         for k, pose in enumerate(poses):
             sampled = ranges.sample(rng)
-            if blur is not None:
+            path: tuple[Pose, ...] = ()
+            if blur is not None and follow_path and blur[k].path:
+                path = blur[k].path
+                pose = exposure_average(path)
+                sampled = dataclasses.replace(sampled, blur_length=0.0, blur_angle=0.0)
+            elif blur is not None:
                 sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
             if video is not None:
                 sampled = dataclasses.replace(sampled, jpeg_quality=None)
-            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample)
+            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path)
 
     if video is None:
         yield from frames()

@@ -51,6 +51,7 @@ __all__ = [
     "WalkKind",
     "camera_walk",
     "draw_walk",
+    "exposure_average",
     "walk_speeds",
 ]
 
@@ -201,6 +202,33 @@ class ExposureBlur:
 
     length_px: float
     angle_rad: float
+    path: tuple[Pose, ...] = ()  # the camera's poses through the exposure, evenly in time
+
+
+#: Poses per pixel of smear when a frame is rendered along its exposure's path
+#: (`ExposureBlur.path`), and the fewest and most of them.
+PATH_SAMPLES_PER_PX = 1.0
+PATH_SAMPLES = (3, 24)
+
+
+def exposure_average(path: Sequence[Pose]) -> Pose:
+    """The pose averaged over an exposure: the mean camera centre and the rotation
+    nearest the mean rotation matrix (what an image integrated over the exposure
+    shows, to first order).
+
+    Parameters
+    ----------
+    path : sequence of Pose
+        The poses through the exposure, evenly in time.
+
+    Returns
+    -------
+    Pose
+    """
+    centre = np.mean([p.position for p in path], axis=0)
+    U, _, Vt = np.linalg.svd(np.sum([p.R for p in path], axis=0))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return Pose(R, -R @ centre)
 
 
 @dataclass(frozen=True, eq=False)
@@ -318,13 +346,16 @@ class Walk:
         rays = np.column_stack([(ideal[:, 0] - camera.cx) / camera.fx, (ideal[:, 1] - camera.cy) / camera.fy,
                                 np.ones(len(ideal))])
         out = []
-        for pose, p0, p1 in zip(self.poses, start, end, strict=True):
+        for k, (pose, p0, p1) in enumerate(zip(self.poses, start, end, strict=True)):
             if room_size is None:
                 points = pose.inverse().transform(3.0 * rays)
             else:
                 points = _room_hits(pose.position, rays @ pose.R, room_size)
             shift = (camera.project_map(points, p1) - camera.project_map(points, p0)).mean(axis=0)
-            out.append(ExposureBlur(float(np.hypot(*shift)), float(math.atan2(shift[1], shift[0]) % math.pi)))
+            length = float(np.hypot(*shift))
+            n = int(np.clip(math.ceil(PATH_SAMPLES_PER_PX * length), *PATH_SAMPLES))
+            path = tuple(self.poses_at(k + np.linspace(-half, half, n))) if half > 0 else ()
+            out.append(ExposureBlur(length, float(math.atan2(shift[1], shift[0]) % math.pi), path))
         return out
 
 

@@ -21,7 +21,7 @@ from app.sim.examples import (
     WALKS,
 )
 from app.sim.render import render
-from app.sim.walks import FPS, TURN_DEG_S, Shake, ShakeMotion, draw_walk, walk_speeds
+from app.sim.walks import FPS, TURN_DEG_S, Shake, ShakeMotion, draw_walk, exposure_average, walk_speeds
 
 SIZE = BENCH_ROOM.size
 
@@ -154,6 +154,26 @@ def test_rendered_walk_takes_its_blur_and_keeps_the_rest() -> None:
     # frames differ: the sensor noise of a different image draws differently).
     rest = [{k: v for k, v in t.degradation.items() if not k.startswith("blur")} for t in (blurred[0], preset[0])]
     assert rest[0] == rest[1]
+
+
+def test_a_frame_rendered_along_its_exposure_is_the_sensors_integral() -> None:
+    room = SPARSE_WALK.walk(0, 3)
+    assert room.blur is not None
+    smear = room.blur[0]
+    assert len(smear.path) >= max(3, math.ceil(smear.length_px))
+    straight, straight_truth = next(iter(room.frames(BENCH_CAMERA, "none")))
+    along, truth = next(iter(SPARSE_WALK.walk(0, 3).frames(BENCH_CAMERA, "none", follow_path=True)))
+    # The truth is the pose averaged over the exposure: the mid-exposure pose here
+    # (a smooth path), to a few micrometres.
+    assert np.linalg.norm(truth.pose.position - straight_truth.pose.position) < 1e-4
+    assert exposure_average(smear.path) == truth.pose
+    # The mean of the renders along the path is the integral the straight smear
+    # approximates: the same frame but for a few grey levels where the smear is not
+    # straight (the shake turns the camera during the exposure).
+    difference = np.abs(along.astype(float) - straight)
+    sharp = scenes.render_frame(room.scene, BENCH_CAMERA, truth.pose, np.random.default_rng(0))[0]
+    blurred = np.abs(along.astype(float) - sharp).mean()
+    assert 0.1 < difference.mean() < 0.5 * blurred, (difference.mean(), blurred)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
