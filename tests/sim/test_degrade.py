@@ -297,8 +297,9 @@ def test_occlusion_partly_outside_image() -> None:
 
 
 def test_presets_present() -> None:
-    assert set(PRESETS) == {"none", "default", "blur", "dark", "full"}
+    assert set(PRESETS) == {"none", "default", "blur", "dark", "bright", "full"}
     assert DegradationRanges.preset("dark") is PRESETS["dark"] is DegradationRanges.DARK
+    assert DegradationRanges.preset("bright") is DegradationRanges.BRIGHT and DegradationRanges.BRIGHT.gain[0] > 1
     with pytest.raises(KeyError):
         DegradationRanges.preset("nope")
 
