@@ -20,8 +20,14 @@ comes with the survey's own standard deviation (the larger of x and y); *NEES*: 
 normalised squared position errors with the self-calibrated map, its `std_m` included
 (median; chi-square with 3 degrees of freedom: 2.37 if honest).
 
+A walk filmed with an exposure (``--walk centre_loop``, ``pan``, ``sparse``, ``plain``) can
+also be rendered along its exposure's path (``--recordings frames "frames, blur along
+the path"``): each frame the mean of renders through the exposure, against the straight
+smear the other recordings use.
+
 Run: ``.venv/bin/python bench/bench_recording.py [--seeds 0 1 2 3] [--frames 300]
-[--bits-per-pixel 0.28]`` (markdown tables).
+[--bits-per-pixel 0.28] [--walk bench] [--recordings frames "phone video"]`` (markdown
+tables).
 """
 
 from __future__ import annotations
@@ -41,10 +47,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
 from app.core.geometry import similarity_from_points  # noqa: E402
 from app.core.survey import survey  # noqa: E402
-from app.sim import BENCH_CAMERA, BENCH_ROOM, FrameTruth, PhoneVideo, camera_walk, render_walk  # noqa: E402
+from app.sim import WALKS, ExampleWalk, FrameTruth, PhoneVideo, camera_walk, render_walk  # noqa: E402
 from bench.walk_runs import detect_frames, track_walk  # noqa: E402
 
-RECORDINGS = ("frames", "phone video")
+RECORDINGS = ("frames", "phone video", "frames, blur along the path")
 
 
 @dataclass
@@ -93,37 +99,37 @@ def disc_rms_mm(result, truth: dict[int, np.ndarray]) -> float:  # type: ignore[
     return 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
 
 
-def run_room(seed: int, n_frames: int, n_tracking: int, video: PhoneVideo, detector: Detector,
-             survey_detector: Detector) -> list[Run]:
-    """Both recordings of one room's calibration walk, surveyed and tracked with."""
+def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video: PhoneVideo,
+             detector: Detector, survey_detector: Detector, recordings: list[str]) -> list[Run]:
+    """Each recording of one room's walk, surveyed and tracked with."""
+    camera = walk.room.camera
     track_rng = np.random.default_rng([seed, 1])
-    room = BENCH_ROOM.walk(seed, n_frames, kind="calibration")
-    scene = room.scene
+    scene = walk.walk(seed, n_frames).scene
     track_poses = camera_walk(track_rng, scene.room_size, n_tracking, kind="tracking")
-    t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, BENCH_CAMERA, track_poses, track_rng),
+    t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, camera, track_poses, track_rng),
                                           n_tracking, f"room {seed}: tracking walk")
     truth = {t.id: t.discs for t in scene.targets}
     runs = []
-    for recording in RECORDINGS:
+    for recording in recordings:
         # The same walk drawn afresh: the same poses, degradations and noise.
-        room = BENCH_ROOM.walk(seed, n_frames, kind="calibration")
+        room = walk.walk(seed, n_frames)
         frames, truths, detect_s = detect_frames(
-            survey_detector, room.frames(BENCH_CAMERA, video=video if recording == "phone video" else None),
+            survey_detector, room.frames(camera, video=video if recording == "phone video" else None,
+                                         follow_path=recording == "frames, blur along the path"),
             n_frames, f"room {seed}: {recording}")
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
-        result = survey(frames, BENCH_CAMERA.width, BENCH_CAMERA.height, BENCH_ROOM.marker_size_m)
+        result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
         seconds = detect_s + time.perf_counter() - start
-        fixed = survey(frames, BENCH_CAMERA.width, BENCH_CAMERA.height, BENCH_ROOM.marker_size_m,
-                       intrinsics=BENCH_CAMERA)
+        fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
         cam = result.camera
         src = np.concatenate([t.discs for t in result.targets])
         dst = np.concatenate([truth[t.id] for t in result.targets])
         rigid = similarity_from_points(src, dst, with_scale=False)
         nees = track_walk(t_frames, t_truths, {t.id: t.discs for t in result.targets}, cam, rigid,
                           {t.id: t.std_m for t in result.targets})[1]
-        runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / BENCH_CAMERA.fx - 1),
-                        float(np.hypot(cam.cx - BENCH_CAMERA.cx, cam.cy - BENCH_CAMERA.cy)),
+        runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / camera.fx - 1),
+                        float(np.hypot(cam.cx - camera.cx, cam.cy - camera.cy)),
                         float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
                         disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)], seconds))
     return runs
@@ -149,7 +155,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="rooms")
     parser.add_argument("--bits-per-pixel", type=float, default=PhoneVideo().bits_per_pixel,
                         help="the phone video's bits per pixel and frame")
+    parser.add_argument("--walk", choices=list(WALKS), default="bench",
+                        help="the example walk (app.sim.examples.WALKS); the bench room's survey walk by default")
+    parser.add_argument("--recordings", nargs="+", choices=RECORDINGS, default=list(RECORDINGS[:2]),
+                        help="how the walk is recorded; blur along the path needs a walk with an exposure "
+                             "(centre_loop, pan, sparse, plain)")
     args = parser.parse_args()
+    walk = WALKS[args.walk]
+    if "frames, blur along the path" in args.recordings and walk.exposure_s is None:
+        parser.error(f"the {args.walk} walk has no exposure to blur along: pick centre_loop, pan, sparse or plain")
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()
@@ -157,10 +171,13 @@ def main() -> None:
     video = PhoneVideo(bits_per_pixel=args.bits_per_pixel)
     started = time.perf_counter()
     runs = [run for seed in args.seeds
-            for run in run_room(seed, args.frames, args.tracking_frames, video, detector, survey_detector)]
-    bit_rate = video.bit_rate(BENCH_CAMERA.width, BENCH_CAMERA.height, 30.0)
-    print(f"\nRecording: the bench room, {args.frames}-frame calibration walks at 30 a second, 640x480, "
-          f"f 820 px, k1 -0.12; phone video: H.264 (libx264, {video.preset}, Main, no B-frames, keyframe every "
+            for run in run_room(walk, seed, args.frames, args.tracking_frames, video, detector, survey_detector,
+                                args.recordings)]
+    camera = walk.room.camera
+    bit_rate = video.bit_rate(camera.width, camera.height, 30.0)
+    print(f"\nRecording: the {walk.name} walk ({walk.room.name} room, {walk.kind}"
+          f"{', hand-held' if walk.shake else ''}), {args.frames} frames at 30 a second, "
+          f"{camera.width}x{camera.height}, f {camera.fx:g} px, k1 {camera.dist[0]:g}; phone video: H.264 (libx264, {video.preset}, Main, no B-frames, keyframe every "
           f"{video.keyframe_s:g} s) at {video.bits_per_pixel:g} bits per pixel ({bit_rate / 1e6:.1f} Mbit/s); "
           f"tracking walks of {args.tracking_frames} frames; {time.perf_counter() - started:.0f} s in all\n")
     print("| room | recording | disc-centre error, median / p90 (px) | cards found | focal error | "
@@ -168,16 +185,18 @@ def main() -> None:
           "| detection + survey (s) |")
     print("|---|---|---|---|---|---|---|---|---|")
     for seed in args.seeds:
-        for recording in RECORDINGS:
+        for recording in args.recordings:
             print(row(str(seed), recording, [r for r in runs if r.seed == seed and r.recording == recording]))
-    for recording in RECORDINGS:
+    for recording in args.recordings:
         print(row("all (worst focal and principal point)", recording, [r for r in runs if r.recording == recording]))
-    frames_runs = [r for r in runs if r.recording == "frames"]
-    video_runs = [r for r in runs if r.recording == "phone video"]
-    ratio = (np.median(np.concatenate([r.disc_errors_px for r in video_runs]))
-             / np.median(np.concatenate([r.disc_errors_px for r in frames_runs])))
-    print(f"\nphone video / frames: disc-centre error (median) {ratio:.2f}, disc RMS (median over rooms) "
-          f"{np.median([r.disc_rms_mm for r in video_runs]) / np.median([r.disc_rms_mm for r in frames_runs]):.2f}")
+    base = [r for r in runs if r.recording == args.recordings[0]]
+    print()
+    for recording in args.recordings[1:]:
+        other = [r for r in runs if r.recording == recording]
+        ratio = (np.median(np.concatenate([r.disc_errors_px for r in other]))
+                 / np.median(np.concatenate([r.disc_errors_px for r in base])))
+        print(f"{recording} / {args.recordings[0]}: disc-centre error (median) {ratio:.2f}, disc RMS (median over "
+              f"rooms) {np.median([r.disc_rms_mm for r in other]) / np.median([r.disc_rms_mm for r in base]):.2f}")
 
 
 if __name__ == "__main__":
