@@ -4,7 +4,7 @@ The code is read through the refined homography (the mean of each code cell's sa
 `verification._measure`), normalised by the card's own black (discs) and white levels,
 and fitted by every code of the family in all four rotations, each as it reads through
 a few amounts of blur (a far card's 2 px cells are never read as clean black and white,
-`_blurred_templates`); a read whose best fit is poor, or that another code or rotation
+`_blurred_templates`), with the card's white clipped or not (`CODE_SATURATION`); a read whose best fit is poor, or that another code or rotation
 fits nearly as well, is refused (`_decode`). A sound card the isotropic templates
 cannot read is tried again against templates smeared by motion blur
 (`_decode_motion`). The rotation of the best fit gives the printed order of the discs
@@ -25,9 +25,11 @@ from app.core.geometry import homographies, jacobians
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, DISC_CENTRES, DISC_RADIUS, get_family
 
 __all__ = [
+    "CLIPPED_WHITE_GREY",
     "CODE_BLUR_CELLS",
     "CODE_FIT_MAX",
     "CODE_GAP_MIN",
+    "CODE_SATURATION",
     "MOTION_ANGLES",
     "MOTION_FIT_TIGHT",
     "MOTION_GAP_TIGHT",
@@ -51,6 +53,16 @@ __all__ = [
 CODE_BLUR_CELLS = (0.0, 0.25, 0.4, 0.55, 0.7)
 CODE_FIT_MAX = 0.15
 CODE_GAP_MIN = 0.15
+#: Clipped white: a brightly lit card's paper saturates the sensor, and the blur's grey
+#: between a black cell and white paper saturates with it, so a blurred read is
+#: brighter than a linear blur predicts. For a card whose white reads at least
+#: `CLIPPED_WHITE_GREY` (of 255), each blurred template is also taken through the clip,
+#: ``min(1, s * read)`` for each ``s`` here (1: no clipping): white exposed at s times
+#: the sensor's full scale. Other cards are read against the linear templates alone:
+#: the clipped ones would make codes alike that a linear read tells apart (bench_detect:
+#: a far and two blurred cards lost when every read had them).
+CODE_SATURATION = (1.0, 1.5, 2.5)
+CLIPPED_WHITE_GREY = 245.0
 
 #: Motion blur: a card the isotropic templates cannot read is tried again against every
 #: code as it reads through a straight smear of `MOTION_LENGTHS_PX` image pixels in each
@@ -133,9 +145,10 @@ def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
         return None
     hs = homographies(q)
     m = _measure(Pyramid(gray), hs, get_family(family).cells)
-    match = decode_cells(m.cells[0], family)
-    if match is None:
+    ok, ids, shifts, fit, gap = _decode(m.cells[0].reshape(1, -1), family, m.white)
+    if not ok[0]:
         return None
+    match = CodeMatch(id=int(ids[0]), shift=int(shifts[0]), fit=float(fit[0]), gap=float(gap[0]))
     return match.id, _reorder(q[0], match.shift), match
 
 
@@ -207,8 +220,9 @@ def _templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @functools.cache
 def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(B * T, n*n) float32 predicted cell reads of every template under every blur of
-    `CODE_BLUR_CELLS`, and the id and vertex shift of each row. The read of a cell is
+    """(B * C * T, n*n) float32 predicted cell reads of every template under every blur
+    of `CODE_BLUR_CELLS`, each clipped as `CODE_SATURATION` says, and the id, vertex
+    shift and whether clipped (saturation above 1) of each row. The read of a cell is
     the mean of its sub-samples (`_plan`), each the blurred card: a 9x9 grid of offsets
     with Gaussian weights, each offset looked up in the card layout."""
     tmpl, ids, shifts = _templates(family)
@@ -238,16 +252,20 @@ def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         for cc in range(n * n):
             a[:, cc] = (ww * ((cell == cc) & ~disc)).sum(axis=(1, 2))
         b = (ww * ((cell < 0) & ~disc)).sum(axis=(1, 2))  # white card around the code
-        preds.append(tmpl @ a.T + b)
-    nb = len(CODE_BLUR_CELLS)
-    return (np.concatenate(preds).astype(np.float32), np.tile(ids, nb), np.tile(shifts, nb))
+        linear = tmpl @ a.T + b
+        preds += [np.minimum(saturation * linear, 1.0) for saturation in CODE_SATURATION]
+    nb = len(CODE_BLUR_CELLS) * len(CODE_SATURATION)
+    clipped = np.tile(np.repeat(np.asarray(CODE_SATURATION) != 1.0, len(tmpl)), len(CODE_BLUR_CELLS))
+    return (np.concatenate(preds).astype(np.float32), np.tile(ids, nb), np.tile(shifts, nb), clipped)
 
 
-def _decode(cells: np.ndarray, family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Vectorised `decode_cells`: for cells (P, n*n) normalised (black 0, white 1):
-    (ok (P,), id (P,), shift (P,), fit (P,) summed squared error of the best template,
-    gap (P,) how much worse the best other (id, rotation) fits)."""
-    preds, ids, shifts = _blurred_templates(family)
+def _decode(cells: np.ndarray, family: str, white: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vectorised `decode_cells`: for cells (P, n*n) normalised (black 0, white 1), and
+    each card's white level (P,) in grey levels (None: none clipped): (ok (P,), id (P,),
+    shift (P,), fit (P,) summed squared error of the best template, gap (P,) how much
+    worse the best other (id, rotation) fits)."""
+    preds, ids, shifts, clipped = _blurred_templates(family)
     tmpl, _, _ = _templates(family)
     n_t = tmpl.shape[0]
     cells = np.asarray(cells, np.float32).reshape(-1, preds.shape[1])
@@ -256,7 +274,10 @@ def _decode(cells: np.ndarray, family: str) -> tuple[np.ndarray, np.ndarray, np.
         z = np.zeros(0)
         return z.astype(bool), z.astype(int), z.astype(int), z, z
     diff = cells[:, None, :] - preds[None]
-    sse = np.einsum("ptk,ptk->pt", diff, diff).reshape(p, -1, n_t).min(axis=1)  # best blur per template
+    sse = np.einsum("ptk,ptk->pt", diff, diff)
+    linear = np.ones(p, bool) if white is None else np.asarray(white) < CLIPPED_WHITE_GREY
+    sse[np.ix_(linear, clipped)] = np.inf  # the clipped templates only for clipped white
+    sse = sse.reshape(p, -1, n_t).min(axis=1)  # best blur per template
     rows = np.arange(p)
     best = np.argmin(sse, axis=1)
     fit = sse[rows, best]

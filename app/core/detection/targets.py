@@ -231,7 +231,7 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
         clock.lap("refine")
     hs = homographies(refined)
     m = _measure(pyr, hs, n)
-    decoded, ids, shifts, fit, gap = _decode(m.cells, family)
+    decoded, ids, shifts, fit, gap = _decode(m.cells, family, m.white)
     ok = m.passed() & np.isfinite(refined).all(axis=(1, 2))
     # With the centres refined, every sample inside every disc must be dark (a disc
     # half hidden by another card, or a blob that is no disc, has light ones).
