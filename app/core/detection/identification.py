@@ -4,7 +4,8 @@ The code is read through the refined homography (the mean of each code cell's sa
 `verification._measure`), normalised by the card's own black (discs) and white levels,
 and fitted by every code of the family in all four rotations, each as it reads through
 a few amounts of blur (a far card's 2 px cells are never read as clean black and white,
-`_blurred_templates`), with the card's white clipped or not (`CODE_SATURATION`); a read whose best fit is poor, or that another code or rotation
+`_blurred_templates`), and a card whose white is clipped also through the clip
+(`CODE_SATURATION`); a read whose best fit is poor, or that another code or rotation
 fits nearly as well, is refused (`_decode`). A sound card the isotropic templates
 cannot read is tried again against templates smeared by motion blur
 (`_decode_motion`). The rotation of the best fit gives the printed order of the discs
@@ -220,9 +221,10 @@ def _templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @functools.cache
 def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(B * C * T, n*n) float32 predicted cell reads of every template under every blur
-    of `CODE_BLUR_CELLS`, each clipped as `CODE_SATURATION` says, and the id, vertex
-    shift and whether clipped (saturation above 1) of each row. The read of a cell is
+    """The predicted cell reads of every template under every blur of
+    `CODE_BLUR_CELLS`: (B * T, n*n) float32 as they are, and (B * C * T, n*n) taken
+    through each clip of `CODE_SATURATION` above 1; both in blocks of T templates, whose
+    ids and vertex shifts (T,) come last. The read of a cell is
     the mean of its sub-samples (`_plan`), each the blurred card: a 9x9 grid of offsets
     with Gaussian weights, each offset looked up in the card layout."""
     tmpl, ids, shifts = _templates(family)
@@ -252,11 +254,11 @@ def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         for cc in range(n * n):
             a[:, cc] = (ww * ((cell == cc) & ~disc)).sum(axis=(1, 2))
         b = (ww * ((cell < 0) & ~disc)).sum(axis=(1, 2))  # white card around the code
-        linear = tmpl @ a.T + b
-        preds += [np.minimum(saturation * linear, 1.0) for saturation in CODE_SATURATION]
-    nb = len(CODE_BLUR_CELLS) * len(CODE_SATURATION)
-    clipped = np.tile(np.repeat(np.asarray(CODE_SATURATION) != 1.0, len(tmpl)), len(CODE_BLUR_CELLS))
-    return (np.concatenate(preds).astype(np.float32), np.tile(ids, nb), np.tile(shifts, nb), clipped)
+        preds.append(tmpl @ a.T + b)
+    linear = np.concatenate(preds).astype(np.float32)
+    clipped = np.concatenate([np.minimum(saturation * pred, 1.0) for pred in preds
+                              for saturation in CODE_SATURATION if saturation != 1.0]).astype(np.float32)
+    return linear, clipped, ids, shifts
 
 
 def _decode(cells: np.ndarray, family: str, white: np.ndarray | None = None
@@ -265,19 +267,23 @@ def _decode(cells: np.ndarray, family: str, white: np.ndarray | None = None
     each card's white level (P,) in grey levels (None: none clipped): (ok (P,), id (P,),
     shift (P,), fit (P,) summed squared error of the best template, gap (P,) how much
     worse the best other (id, rotation) fits)."""
-    preds, ids, shifts, clipped = _blurred_templates(family)
+    linear, clipped, ids, shifts = _blurred_templates(family)
     tmpl, _, _ = _templates(family)
     n_t = tmpl.shape[0]
-    cells = np.asarray(cells, np.float32).reshape(-1, preds.shape[1])
+    cells = np.asarray(cells, np.float32).reshape(-1, linear.shape[1])
     p = cells.shape[0]
     if p == 0:
         z = np.zeros(0)
         return z.astype(bool), z.astype(int), z.astype(int), z, z
-    diff = cells[:, None, :] - preds[None]
-    sse = np.einsum("ptk,ptk->pt", diff, diff)
-    linear = np.ones(p, bool) if white is None else np.asarray(white) < CLIPPED_WHITE_GREY
-    sse[np.ix_(linear, clipped)] = np.inf  # the clipped templates only for clipped white
-    sse = sse.reshape(p, -1, n_t).min(axis=1)  # best blur per template
+    # Every read against the linear templates; a card with clipped white against the
+    # clipped ones as well (most frames have none: the hot path stays as it was).
+    diff = cells[:, None, :] - linear[None]
+    sse = np.einsum("ptk,ptk->pt", diff, diff).reshape(p, -1, n_t).min(axis=1)  # best blur per template
+    bright = np.zeros(p, bool) if white is None else np.asarray(white) >= CLIPPED_WHITE_GREY
+    if bright.any():
+        diff = cells[bright][:, None, :] - clipped[None]
+        sse_clipped = np.einsum("ptk,ptk->pt", diff, diff).reshape(int(bright.sum()), -1, n_t).min(axis=1)
+        sse[bright] = np.minimum(sse[bright], sse_clipped)
     rows = np.arange(p)
     best = np.argmin(sse, axis=1)
     fit = sse[rows, best]
