@@ -18,6 +18,8 @@ Measures, per detector and condition:
   with an id that is not in the frame;
 * off >2px: detections with the id of a counted target but a point more than 2 px off;
 * RMS px: point error over the correct detections;
+* per view bin: the rate by viewing cosine and imaged disc diameter, over every
+  condition (`BINS_COS`, `BINS_DISC_PX`), each detector side by side;
 * ms: median wall time per frame of ``detect`` on one thread (cv2.setNumThreads(1),
   BLAS/OpenMP at one thread, AprilTag nthreads=1). Rendering is not timed.
 
@@ -56,6 +58,15 @@ CLEAN = "clean"  # fronto-parallel, no degradation: the centre-accuracy row
 EMPTY = "empty"  # no marker: false targets
 MATCH_PX = 2.0
 CLEAN_MIN_DISC_PX = 8.0
+#: Bin edges of the viewing cosine (the card's normal against the direction to the
+#: camera: 1 face-on, 0 edge-on) and of the imaged disc diameter (px), for the rate per
+#: bin over every condition; and the bar for a good view: a card seen at a cosine of 0.5
+#: or more with discs of 3 px or more is to be found 99 % of the time.
+BINS_COS = (0.0, 0.5, 0.7, 0.85, 1.01)
+BINS_DISC_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
+GOOD_VIEW = (0.5, 3.0)
+#: A bin is reported with at least this many targets.
+MIN_BIN_TARGETS = 20
 
 
 @dataclass
@@ -72,6 +83,8 @@ class Stats:
     sq_errors: list[float] = field(default_factory=list)  # squared point errors (px^2)
     clean_sq_errors: list[float] = field(default_factory=list)  # discs >= 8 px only
     ms: list[float] = field(default_factory=list)
+    # (viewing-cosine bin, disc-size bin) -> [counted targets, correct]: `BINS_COS`, `BINS_DISC_PX`
+    binned: dict[tuple[int, int], list[int]] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -107,7 +120,16 @@ def timed_detect(det: PeerDetector, image: np.ndarray, stats: Stats) -> list[Det
     return found
 
 
-def score_frame(stats: Stats, found: list[Detection], cards: list[TruthCard], clean: bool) -> None:
+def view_bin(cosine: float, disc_px: float) -> tuple[int, int]:
+    """The (viewing-cosine, disc-size) bin of a card (`BINS_COS`, `BINS_DISC_PX`)."""
+    return (int(np.clip(np.searchsorted(BINS_COS, cosine, side="right") - 1, 0, len(BINS_COS) - 2)),
+            int(np.clip(np.searchsorted(BINS_DISC_PX, disc_px, side="right") - 1, 0, len(BINS_DISC_PX) - 2)))
+
+
+def score_frame(stats: Stats, found: list[Detection], cards: list[TruthCard], clean: bool,
+                cosines: list[float] | None = None) -> None:
+    """Score one frame's detections; `cosines` (one per card) also counts each counted
+    card in its viewing-angle and disc-size bin."""
     stats.frames += 1
     stats.targets += sum(c.counted for c in cards)
     by_id = {c.id: c for c in cards}
@@ -135,6 +157,12 @@ def score_frame(stats: Stats, found: list[Detection], cards: list[TruthCard], cl
             stats.wrong_ids += 1
         else:
             stats.false += 1
+    if cosines is not None:
+        for card, cosine in zip(cards, cosines, strict=True):
+            if card.counted:
+                counts = stats.binned.setdefault(view_bin(cosine, card.disc_px), [0, 0])
+                counts[0] += 1
+                counts[1] += card.id in matched
 
 
 def frame_rng(seed: int, condition: str, index: int, attempt: int = 0) -> np.random.Generator:
@@ -179,7 +207,8 @@ def run(detectors: list[PeerDetector], conditions: list[str], n_frames: int, n_e
                     for det in dets:
                         stats = results[det.name][condition]
                         found = timed_detect(det, image, stats)
-                        score_frame(stats, found, cards, clean=condition == CLEAN)
+                        score_frame(stats, found, cards, clean=condition == CLEAN,
+                                    cosines=[t.facing_cos for t in truth.targets])
                         stats.occluded += sum(1 for c, t in zip(cards, truth.targets, strict=True)
                                               if t.visible and not c.counted)
                     bar.update()
@@ -273,6 +302,39 @@ def clean_table(results: dict[str, dict[str, Stats]]) -> str:
     return "\n".join(lines)
 
 
+def _binned(by_condition: dict[str, Stats], conditions: list[str]) -> dict[tuple[int, int], list[int]]:
+    """[targets, correct] per view bin, over `conditions`."""
+    out: dict[tuple[int, int], list[int]] = {}
+    for condition in conditions:
+        for key, (n, k) in by_condition[condition].binned.items():
+            counts = out.setdefault(key, [0, 0])
+            counts[0] += n
+            counts[1] += k
+    return out
+
+
+def _bin_label(key: tuple[int, int]) -> str:
+    c, d = key
+    disc = (f"{BINS_DISC_PX[d]:g}-{BINS_DISC_PX[d + 1]:g} px" if np.isfinite(BINS_DISC_PX[d + 1])
+            else f">= {BINS_DISC_PX[d]:g} px")
+    return f"{BINS_COS[c]:g}-{min(BINS_COS[c + 1], 1.0):g} | {disc}"
+
+
+def bin_table(results: dict[str, dict[str, Stats]], conditions: list[str]) -> str:
+    """The rate of every detector per viewing-cosine and disc-size bin, over `conditions`."""
+    names = list(results)
+    binned = {name: _binned(results[name], conditions) for name in names}
+    keys = sorted({k for b in binned.values() for k in b if b[k][0] >= MIN_BIN_TARGETS})
+    lines = ["| viewing cosine | disc diameter | targets | " + " | ".join(names) + " |",
+             "|---|---|---:|" + "---:|" * len(names)]
+    for key in keys:
+        n = max(binned[name].get(key, [0, 0])[0] for name in names)
+        cells = [_pct(binned[name][key][1] / binned[name][key][0]) if binned[name].get(key, [0])[0] else "-"
+                 for name in names]
+        lines.append(f"| {_bin_label(key)} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: list[str]) -> str:
     """The detector's targets (rate against the peers, blur and low light, false and wrong
     ids, disc RMS, speed), each PASS or FAIL."""
@@ -294,6 +356,19 @@ def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: li
     if CLEAN in s:
         rows.append((f"disc RMS <= 0.1 px on clean frames, discs >= 8 px ({_num(s[CLEAN].clean_rms, '.3f')})",
                      s[CLEAN].clean_rms <= 0.1))
+    binned = _binned(s, conditions)
+    good = [v for (c, d), v in binned.items() if BINS_COS[c] >= GOOD_VIEW[0] and BINS_DISC_PX[d] >= GOOD_VIEW[1]]
+    n_good, k_good = sum(v[0] for v in good), sum(v[1] for v in good)
+    if n_good:
+        rows.append((f"rate >= 99% for cards at a viewing cosine >= {GOOD_VIEW[0]:g} with discs >= "
+                     f"{GOOD_VIEW[1]:g} px ({_pct(k_good / n_good)} of {n_good})", k_good >= 0.99 * n_good))
+    peers = {n: _binned(v, conditions) for n, v in results.items() if _is_peer(n)}
+    behind = [key for key, (n, k) in binned.items() if n >= MIN_BIN_TARGETS
+              and any(p.get(key, [0, 0])[0] and p[key][1] / p[key][0] > k / n for p in peers.values())]
+    if peers:
+        rows.append((f"rate >= best peer in every view bin ({len(behind)} bins behind"
+                     + (f": {', '.join(_bin_label(b).replace(' | ', ', ') for b in sorted(behind))}" if behind else "")
+                     + ")", not behind))
     ms = np.concatenate([np.asarray(v.ms) for v in s.values()]) if s else np.zeros(0)
     median = float(np.median(ms)) if ms.size else float("nan")
     rows.append((f"median <= 4 ms/frame, one thread ({_num(median)} ms over all frames)", median <= 4.0))
@@ -343,6 +418,10 @@ def main(argv: list[str] | None = None) -> None:
             print("\n(Targets the simulator calls visible but covered by a nearer card, or with the tag "
                   "square not wholly in the image, left out of every row: "
                   f"{', '.join(f'{c} {n}' for c, n in occluded.items() if n)}.)")
+    if table_conditions and results:
+        print(f"\nThe rate per viewing angle and disc size, over {', '.join(table_conditions)} (bins of "
+              f"{MIN_BIN_TARGETS} targets or more; cosine 1: face-on):\n")
+        print(bin_table(results, table_conditions))
     if CLEAN in conditions and results:
         print("\n" + clean_table(results))
     if args.empty_frames and results:
