@@ -26,9 +26,9 @@ PAN_RADIUS_M = 0.10
 PAN_FRACTION = 0.9
 #: How many mapped neighbours the advice names.
 N_NEIGHBOURS = 2
-#: A principal point less certain than this (1 sigma, px, either axis) is told: off by
-#: that much, every pose is tilted by it over the focal length (0.07 degrees for 1 px at
-#: f 820 px: 3 mm sideways at 3 m).
+#: A principal point more uncertain than this (1 sigma, px, either axis) gets a warning:
+#: off by that much, every pose is tilted by it over the focal length (0.07 degrees for
+#: 1 px at f 820 px: 4 mm sideways at 3 m).
 PRINCIPAL_POINT_STD_PX = 0.5
 
 

@@ -125,6 +125,10 @@ class SurveyResult:
             (``intrinsics_std``: None when the intrinsics were given), warnings and timing.
         """
         std = self.intrinsics_std
+
+        def number(x: float) -> float | None:  # JSON has no NaN: a degenerate covariance gives None
+            return float(x) if np.isfinite(x) else None
+
         return {
             "n_frames": len(self.frames_used),
             "n_registered": self.n_registered,
@@ -134,8 +138,8 @@ class SurveyResult:
             "principal_point": [self.camera.cx, self.camera.cy],
             "dist": self.camera.dist.tolist(),
             "intrinsics_std": None if std is None else {
-                "focal_px": float(std[0]), "principal_point_px": [float(std[1]), float(std[2])],
-                "k1": float(std[3]), "k2": float(std[4])},
+                "focal_px": number(std[0]), "principal_point_px": [number(std[1]), number(std[2])],
+                "k1": number(std[3]), "k2": number(std[4])},
             "warnings": list(self.warnings),
             "timing_s": dict(self.timing_s),
         }
