@@ -9,8 +9,8 @@ Modules:
   named single-frame scenarios and the ground truth of every frame.
 * `app.sim.walks`: camera walks through a room (survey loops, tracking, a loop near the
   middle, a pan), hand-held shake and the motion blur of each exposure.
-* `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG) and
-  their named presets.
+* `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG, a thin
+  lens's depth of field) and their named presets.
 * `app.sim.video`: a walk recorded as a phone records it (H.264 through libx264).
 * `app.sim.examples`: the named example rooms and walks the benchmarks and tests measure on.
 
@@ -19,10 +19,11 @@ install 'fidotrack[sim]'``. The package's name `render` is the function; import 
 module's other names from it directly (``from app.sim.render import visible_points``).
 """
 
-from app.sim.degrade import PRESETS, Degradation, DegradationRanges
+from app.sim.degrade import PRESETS, Degradation, DegradationRanges, ThinLens
 from app.sim.examples import (
     BENCH_CAMERA,
     BENCH_ROOM,
+    CINE_LENS,
     EXAMPLES,
     PLAIN_ROOM,
     SMALL_ROOM,
@@ -52,6 +53,7 @@ from app.sim.walks import ExposureBlur, Shake, Walk, WalkKind, camera_walk, draw
 __all__ = [
     "BENCH_CAMERA",
     "BENCH_ROOM",
+    "CINE_LENS",
     "EXAMPLES",
     "PHONE",
     "PLAIN_ROOM",
@@ -74,6 +76,7 @@ __all__ = [
     "Shake",
     "TargetTruth",
     "TexturedQuad",
+    "ThinLens",
     "Walk",
     "WalkKind",
     "camera_walk",

@@ -28,7 +28,7 @@ from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family,
 from app.sim import degrade
 from app.sim.render import TexturedQuad, render
 from app.sim.video import PhoneVideo, record
-from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average
+from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average, room_hits
 
 __all__ = [
     "CARD_PLACEMENTS",
@@ -51,6 +51,7 @@ __all__ = [
     "frame_truth",
     "photo_mosaic",
     "plain_paint",
+    "depth_map",
     "render_frame",
     "render_walk",
     "room_scene",
@@ -874,6 +875,30 @@ def frame_truth(camera: Camera, pose: Pose, scene: Scene, degradation: dict[str,
     return FrameTruth(pose=pose, camera=camera, targets=truths, degradation=degradation or {})
 
 
+def depth_map(camera: Camera, pose: Pose, room_size: tuple[float, float, float]) -> np.ndarray:
+    """Each pixel's depth along the optical axis in a box room, metres: where its ray
+    meets the room's faces (the cards lie on them).
+
+    Parameters
+    ----------
+    camera : Camera
+    pose : Pose
+        Map-to-camera transform; the camera inside the room.
+    room_size : tuple of float
+        (W, D, H) of the room, metres.
+
+    Returns
+    -------
+    (height, width) ndarray
+    """
+    v, u = np.indices((camera.height, camera.width), dtype=np.float64)
+    ideal = camera.undistort_pixels(np.stack([u.ravel(), v.ravel()], axis=1))
+    rays = np.column_stack([(ideal[:, 0] - camera.cx) / camera.fx, (ideal[:, 1] - camera.cy) / camera.fy,
+                            np.ones(len(ideal))])  # camera frame, z = 1: depth = the ray's length scale
+    hits = room_hits(pose.position, rays @ pose.R, room_size)
+    return pose.transform(hits)[:, 2].reshape(camera.height, camera.width)
+
+
 def render_frame(
     scene: Scene,
     camera: Camera,
@@ -883,6 +908,7 @@ def render_frame(
     occlusion_probability: float = 0.0,
     supersample: int = 2,
     exposure: Sequence[Pose] = (),
+    lens: degrade.ThinLens | None = None,
 ) -> tuple[np.ndarray, FrameTruth]:
     """Render one frame and its ground truth.
 
@@ -905,6 +931,10 @@ def render_frame(
         The camera's poses through the exposure, evenly in time: the frame is the mean
         of their renders, as a sensor integrates the light while the camera moves (the
         truth stays `pose`'s: give the exposure-averaged pose, `walks.exposure_average`).
+    lens : ThinLens, optional
+        The lens's depth of field: each pixel blurred by its depth's blur circle
+        (`degrade.depth_defocus`, the depths from `depth_map`), before the other
+        degradations. Box rooms only (the scene's `room_size`).
 
     Returns
     -------
@@ -917,6 +947,10 @@ def render_frame(
                          for p in exposure], axis=0)
     else:
         image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
+    if lens is not None:
+        if scene.room_size is None:
+            raise ValueError("a depth of field needs a box room (the scene's room_size) for the depths")
+        image = degrade.depth_defocus(image, depth_map(camera, pose, scene.room_size), lens, camera.fx)
     truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
     visible = truth.visible_targets()
     if visible and occlusion_probability > 0 and rng.random() < occlusion_probability:
@@ -1092,6 +1126,7 @@ def render_walk(
     video: PhoneVideo | None = None,
     fps: float = FPS,
     follow_path: bool = False,
+    lens: degrade.ThinLens | None = None,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1122,6 +1157,8 @@ def render_walk(
         the mean of the renders from the poses through the exposure, the truth at their
         average pose) instead of smearing it straight: a roll, a turn and the depths
         across the image blur each part of it as they do in a camera.
+    lens : ThinLens, optional
+        The lens's depth of field (`render_frame`); box rooms only.
 
     Yields
     ------
@@ -1148,7 +1185,7 @@ def render_walk(
                 sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
             if video is not None:
                 sampled = dataclasses.replace(sampled, jpeg_quality=None)
-            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path)
+            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path, lens=lens)
 
     if video is None:
         yield from frames()

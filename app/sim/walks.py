@@ -52,6 +52,7 @@ __all__ = [
     "camera_walk",
     "draw_walk",
     "exposure_average",
+    "room_hits",
     "walk_speeds",
 ]
 
@@ -350,7 +351,7 @@ class Walk:
             if room_size is None:
                 points = pose.inverse().transform(3.0 * rays)
             else:
-                points = _room_hits(pose.position, rays @ pose.R, room_size)
+                points = room_hits(pose.position, rays @ pose.R, room_size)
             shift = (camera.project_map(points, p1) - camera.project_map(points, p0)).mean(axis=0)
             length = float(np.hypot(*shift))
             n = int(np.clip(math.ceil(PATH_SAMPLES_PER_PX * length), *PATH_SAMPLES))
@@ -359,8 +360,9 @@ class Walk:
         return out
 
 
-def _room_hits(eye: np.ndarray, directions: np.ndarray, room_size: tuple[float, float, float]) -> np.ndarray:
-    """Where rays from `eye` (inside the room) along `directions` (N, 3) meet its faces."""
+def room_hits(eye: np.ndarray, directions: np.ndarray, room_size: tuple[float, float, float]) -> np.ndarray:
+    """Where rays from `eye` (inside the box room) along `directions` (N, 3) meet its
+    faces, (N, 3)."""
     bound = np.where(directions > 0, np.asarray(room_size, np.float64), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         distance = np.where(directions != 0, (bound - eye) / directions, np.inf)

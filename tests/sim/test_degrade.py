@@ -13,8 +13,10 @@ from app.sim.degrade import (
     Degradation,
     DegradationRanges,
     Specular,
+    ThinLens,
     defocus,
     defocus_kernel,
+    depth_defocus,
     exposure,
     gamma,
     jpeg,
@@ -424,3 +426,24 @@ def test_tiny_defocus_radius_is_the_identity_not_nan() -> None:
     out = defocus(img, 0.04)
     assert np.isfinite(out).all()
     np.testing.assert_allclose(out, img, atol=1e-6)
+
+
+def test_thin_lens_blur_grows_away_from_the_focus() -> None:
+    lens = ThinLens(focal_length_mm=50.0, f_number=2.0, focus_m=2.0)
+    radius = lens.blur_radius_px(np.array([2.0, 4.0, 1.0]), focal_px=1000.0)
+    # At the focus nothing; at 4 m: (f/N) f |d - s| / (d (s - f)), in pixels, halved.
+    np.testing.assert_allclose(radius, [0.0, 0.5 * 0.025 * 0.05 * 2.0 / (4.0 * 1.95) * 1000.0 / 0.05,
+                                        0.5 * 0.025 * 0.05 * 1.0 / (1.0 * 1.95) * 1000.0 / 0.05])
+    with pytest.raises(ValueError):
+        ThinLens(focal_length_mm=50.0, f_number=2.0, focus_m=0.01)
+
+
+def test_depth_defocus_blurs_what_is_out_of_focus_only() -> None:
+    img = np.zeros((64, 128), np.float32)
+    img[:, ::8] = 1.0  # thin lines everywhere
+    depth = np.full(img.shape, 2.0)
+    depth[:, 64:] = 6.0  # the right half far behind the focus
+    lens = ThinLens(focal_length_mm=50.0, f_number=2.0, focus_m=2.0)
+    out = depth_defocus(img, depth, lens, focal_px=1000.0)
+    np.testing.assert_allclose(out[:, 8:56], img[:, 8:56], atol=1e-6)  # in focus: untouched
+    assert out[:, 72:120].max() < 0.5 and abs(out[:, 72:120].mean() - img[:, 72:120].mean()) < 0.01  # spread, kept

@@ -11,6 +11,7 @@ import pytest
 from app.core.geometry import Pose
 from app.sim import scenes
 from app.sim.examples import (
+    CINE_LENS,
     BENCH_CAMERA,
     BENCH_ROOM,
     EXPOSURE_S,
@@ -174,6 +175,22 @@ def test_a_frame_rendered_along_its_exposure_is_the_sensors_integral() -> None:
     sharp = scenes.render_frame(room.scene, BENCH_CAMERA, truth.pose, np.random.default_rng(0))[0]
     blurred = np.abs(along.astype(float) - sharp).mean()
     assert 0.1 < difference.mean() < 0.5 * blurred, (difference.mean(), blurred)
+
+
+def test_a_lens_blurs_each_part_of_the_room_by_its_depth() -> None:
+    lens = CINE_LENS
+    room = BENCH_ROOM.walk(0, 300)
+    depth = scenes.depth_map(BENCH_CAMERA, room.poses[0], SIZE)
+    # Depths are those of the walls the rays meet: inside the room, in front.
+    assert 0.1 < depth.min() and depth.max() < math.hypot(*SIZE)
+    sharp, truth = next(iter(room.frames(BENCH_CAMERA, "none")))
+    soft, soft_truth = next(iter(BENCH_ROOM.walk(0, 300).frames(BENCH_CAMERA, "none", lens=lens)))
+    assert soft_truth.pose == truth.pose  # the truth does not move
+    radius = lens.blur_radius_px(depth, BENCH_CAMERA.fx)
+    assert radius.max() > 0.5 and np.abs(soft.astype(float) - sharp).mean() > 0.5
+    with pytest.raises(ValueError, match="box room"):
+        scenes.render_frame(scenes.Scene(background=[], targets=[]), BENCH_CAMERA, truth.pose,
+                            np.random.default_rng(0), lens=lens)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
