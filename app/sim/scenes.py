@@ -1173,6 +1173,7 @@ def render_walk(
     ranges = degrade.PRESETS[degradation]
     if blur is not None and len(blur) != len(poses):
         raise ValueError(f"blur gives {len(blur)} frames for {len(poses)} poses")
+
     def frames() -> Iterator[tuple[np.ndarray, FrameTruth]]:
         for k, pose in enumerate(poses):
             sampled = ranges.sample(rng)
