@@ -47,10 +47,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
-from app.core.geometry import similarity_from_points  # noqa: E402
-from app.core.survey import survey  # noqa: E402
+from app.core.survey import SurveyResult, survey  # noqa: E402
 from app.sim import CINE_LENS, WALKS, ExampleWalk, FrameTruth, PhoneVideo, camera_walk, render_walk  # noqa: E402
-from bench.walk_runs import detect_frames, track_walk  # noqa: E402
+from bench.walk_runs import detect_frames, map_fit, track_walk  # noqa: E402
 
 RECORDINGS = ("frames", "phone video", "frames, blur along the path", "frames, cine lens depth of field")
 
@@ -93,12 +92,9 @@ def disc_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth]) ->
     return (np.concatenate(errors) if errors else np.zeros(0)), found, seen
 
 
-def disc_rms_mm(result, truth: dict[int, np.ndarray]) -> float:  # type: ignore[no-untyped-def]
+def disc_rms_mm(result: SurveyResult, truth: dict[int, np.ndarray]) -> float:
     """The surveyed discs against the true ones after the best similarity, mm."""
-    src = np.concatenate([t.discs for t in result.targets])
-    dst = np.concatenate([truth[t.id] for t in result.targets])
-    similar = similarity_from_points(src, dst)
-    return 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
+    return 1000 * float(np.sqrt(np.mean(map_fit(result, truth)[1] ** 2)))
 
 
 def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video: PhoneVideo,
@@ -126,9 +122,7 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
         seconds = detect_s + time.perf_counter() - start
         fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
         cam = result.camera
-        src = np.concatenate([t.discs for t in result.targets])
-        dst = np.concatenate([truth[t.id] for t in result.targets])
-        rigid = similarity_from_points(src, dst, with_scale=False)
+        rigid, _ = map_fit(result, truth, with_scale=False)
         nees = track_walk(t_frames, t_truths, {t.id: t.discs for t in result.targets}, cam, rigid,
                           {t.id: t.std_m for t in result.targets})[1]
         runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / camera.fx - 1),

@@ -37,10 +37,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import Detector, load_default_classifier, warm_up  # noqa: E402
-from app.core.geometry import similarity_from_points  # noqa: E402
 from app.core.survey import FeatureObservations, SurveyError, survey  # noqa: E402
 from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds  # noqa: E402
-from bench.walk_runs import detect_and_track_features, detect_frames, track_errors  # noqa: E402
+from bench.walk_runs import detect_and_track_features, detect_frames, map_fit, track_errors  # noqa: E402
 
 #: A card counts as mapped-worthy when seen in this many frames over this many degrees.
 MIN_FRAMES, MIN_SPAN_DEG = 10, 5.0
@@ -146,15 +145,11 @@ def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: l
     run.mapped, run.n_registered, run.warnings = {t.id for t in result.targets}, result.n_registered, result.warnings
     run.focal_pct = 100 * (result.camera.fx / camera.fx - 1)
     truth = {t.id: t.discs for t in scene.targets}
-    src = np.concatenate([t.discs for t in result.targets])
-    dst = np.concatenate([truth[t.id] for t in result.targets])
-    similar = similarity_from_points(src, dst)
-    run.disc_rms_mm = 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
+    similar, errors = map_fit(result, truth)
+    run.disc_rms_mm = 1000 * float(np.sqrt(np.mean(errors**2)))
     # The reported uncertainties against the errors: std_m is relative to one rigid
     # motion of the whole metric map, so the map is taken to the truth by a rigid fit.
-    rigid = similarity_from_points(src, dst, with_scale=False)
-    run.error_over_std = (np.linalg.norm(rigid.apply(src) - dst, axis=1)
-                          / np.concatenate([t.std_m for t in result.targets]))
+    run.error_over_std = map_fit(result, truth, with_scale=False)[1] / np.concatenate([t.std_m for t in result.targets])
     # Tracking: the surveyed map with the surveyed camera against the true map of the same
     # cards with the true camera, on the frames both locate; and how many frames the whole
     # true map locates.

@@ -11,8 +11,16 @@ from tqdm import tqdm
 
 from app.core.detection import DetectedTarget, Detector
 from app.core.features import FeatureTracker, exclusion_mask
-from app.core.geometry import Camera, PoseUndetermined, Similarity, TargetObservation, estimate_pose
-from app.core.survey import FeatureObservations
+from app.core.geometry import (
+    Camera,
+    PoseUndetermined,
+    Similarity,
+    TargetObservation,
+    alignment_residuals,
+    estimate_pose,
+    similarity_from_points,
+)
+from app.core.survey import FeatureObservations, SurveyResult
 from app.sim import FrameTruth
 
 
@@ -47,6 +55,17 @@ def detect_and_track_features(detector: Detector, frames: Iterable[tuple[np.ndar
     for image, detected in zip(images, detections, strict=True):
         tracker.add(image, exclusion_mask(image.shape[:2], np.array([t.discs for t in detected]).reshape(-1, 4, 2)))
     return detections, truths, detect_s, FeatureObservations.from_tracks(tracker.tracks()), time.perf_counter() - start
+
+
+def map_fit(result: SurveyResult, truth: dict[int, np.ndarray], with_scale: bool = True
+            ) -> tuple[Similarity, np.ndarray]:
+    """The surveyed map taken into the room's frame (the best similarity, or with
+    ``with_scale=False`` the best rigid motion: the survey claims metric scale), and the
+    error of each surveyed disc after it (m), in the targets' order."""
+    src = np.concatenate([t.discs for t in result.targets])
+    dst = np.concatenate([truth[t.id] for t in result.targets])
+    fit = similarity_from_points(src, dst, with_scale=with_scale)
+    return fit, alignment_residuals(fit, src, dst)
 
 
 def track_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],

@@ -48,10 +48,10 @@ __all__ = [
     "builtin_photos",
     "camera_walk",
     "card_texture",
+    "depth_map",
     "frame_truth",
     "photo_mosaic",
     "plain_paint",
-    "depth_map",
     "render_frame",
     "render_walk",
     "room_scene",
@@ -891,10 +891,9 @@ def depth_map(camera: Camera, pose: Pose, room_size: tuple[float, float, float])
     -------
     (height, width) ndarray
     """
-    v, u = np.indices((camera.height, camera.width), dtype=np.float64)
-    ideal = camera.undistort_pixels(np.stack([u.ravel(), v.ravel()], axis=1))
-    rays = np.column_stack([(ideal[:, 0] - camera.cx) / camera.fx, (ideal[:, 1] - camera.cy) / camera.fy,
-                            np.ones(len(ideal))])  # camera frame, z = 1: depth = the ray's length scale
+    ideal_u, ideal_v = camera.distortion_maps()  # each pixel's ideal position, cached with the camera
+    rays = np.column_stack([(ideal_u.ravel() - camera.cx) / camera.fx, (ideal_v.ravel() - camera.cy) / camera.fy,
+                            np.ones(ideal_u.size)])  # camera frame, z = 1: depth = the ray's length scale
     hits = room_hits(pose.position, rays @ pose.R, room_size)
     return pose.transform(hits)[:, 2].reshape(camera.height, camera.width)
 

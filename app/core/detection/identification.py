@@ -146,16 +146,16 @@ def identify(gray: np.ndarray, discs: np.ndarray, family: str = DEFAULT_FAMILY
         return None
     hs = homographies(q)
     m = _measure(Pyramid(gray), hs, get_family(family).cells)
-    ok, ids, shifts, fit, gap = _decode(m.cells[0].reshape(1, -1), family, m.white)
-    if not ok[0]:
+    match = decode_cells(m.cells[0], family, float(m.white[0]))
+    if match is None:
         return None
-    match = CodeMatch(id=int(ids[0]), shift=int(shifts[0]), fit=float(fit[0]), gap=float(gap[0]))
     return match.id, _reorder(q[0], match.shift), match
 
 
-def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY) -> CodeMatch | None:
+def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY, white: float | None = None) -> CodeMatch | None:
     """Match the code cells read off a card against every code of `family` in every
-    rotation, each as it reads through a few amounts of blur (`CODE_BLUR_CELLS`).
+    rotation, each as it reads through a few amounts of blur (`CODE_BLUR_CELLS`), and
+    through the clip too when the card's white is clipped (`CODE_SATURATION`).
 
     Parameters
     ----------
@@ -164,6 +164,9 @@ def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY) -> CodeMatch |
         quadrilateral's homography.
     family : str
         The code family (its codes have n x n cells).
+    white : float, optional
+        The card's white level in grey levels (`CLIPPED_WHITE_GREY` or more: clipped);
+        None: not clipped.
 
     Returns
     -------
@@ -172,7 +175,8 @@ def decode_cells(cells: np.ndarray, family: str = DEFAULT_FAMILY) -> CodeMatch |
         error above `CODE_FIT_MAX`, or another code (or rotation) within `CODE_GAP_MIN`
         of it.
     """
-    ok, ids, shifts, fit, gap = _decode(np.asarray(cells, np.float32).reshape(1, -1), family)
+    ok, ids, shifts, fit, gap = _decode(np.asarray(cells, np.float32).reshape(1, -1), family,
+                                        None if white is None else np.array([white]))
     if not ok[0]:
         return None
     return CodeMatch(id=int(ids[0]), shift=int(shifts[0]), fit=float(fit[0]), gap=float(gap[0]))
@@ -220,7 +224,7 @@ def _templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @functools.cache
-def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _blurred_templates(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The predicted cell reads of every template under every blur of
     `CODE_BLUR_CELLS`: (B * T, n*n) float32 as they are, and (B * C * T, n*n) taken
     through each clip of `CODE_SATURATION` above 1; both in blocks of T templates, whose
