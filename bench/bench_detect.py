@@ -53,7 +53,7 @@ from app.sim import scenes  # noqa: E402
 from app.sim.truth import TruthCard, truth_cards  # noqa: E402
 from bench.peers import Detection, PeerDetector, all_detectors  # noqa: E402
 
-CONDITIONS = ("default", "far", "blur", "dark", "bright", "clutter")
+CONDITIONS = ("default", "far", "blur", "dark", "bright", "tiny", "grazing", "clutter")
 CLEAN = "clean"  # fronto-parallel, no degradation: the centre-accuracy row
 EMPTY = "empty"  # no marker: false targets
 MATCH_PX = 2.0

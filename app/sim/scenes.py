@@ -1038,6 +1038,8 @@ SCENARIOS: dict[str, FrameScenario] = {
         FrameScenario("blur", degradation="blur"),
         FrameScenario("dark", degradation="dark"),
         FrameScenario("bright", distance_m=(1.5, 10.0), tilt_deg=(0.0, 50.0), degradation="bright"),
+        FrameScenario("tiny", distance_m=(9.0, 13.0), tilt_deg=(0.0, 40.0)),
+        FrameScenario("grazing", distance_m=(1.5, 6.0), tilt_deg=(60.0, 80.0)),
         FrameScenario("clutter", n_targets=(1, 2), clutter_tiles=(8, 10)),
         FrameScenario("specular", specular_on_target=True),
         FrameScenario("occluded", n_targets=(2, 3), occlusion_probability=1.0),

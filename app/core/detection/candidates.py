@@ -1034,6 +1034,57 @@ def suppress(candidates: np.ndarray, priority: np.ndarray | None = None) -> np.n
     return order[_greedy(order.size, *_clash_pairs(c[order]))]
 
 
+#: A window at least this many pyramid levels coarser than the windows inside it may
+#: hold a whole small card rather than one disc (`_claimed_discs`); and at least this
+#: many of the finer windows must pass stage 2 for them to be kept beside it (three
+#: discs of a card: completion finds the fourth).
+CARD_CLAIM_LEVELS = 2
+CARD_CLAIM_MIN_DISCS = 3
+
+
+def _claimed_discs(s1: Stage1Windows, classifier: DiscClassifier, order: np.ndarray, first: np.ndarray,
+                   second: np.ndarray, accepted: np.ndarray, score: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """The windows of a small card's discs that a coarse window claiming the whole card
+    suppressed, kept beside it (bool over the priority order, like `accepted`); the
+    stage-2 scores of the windows it judges are written into `score`.
+
+    Two levels up, a card with 4 px discs is a 4 px blob, and in bright light, its white
+    clipped into a white wall, nothing around it tells it from a disc: its window passes
+    both stages and claims the card's four discs (bench_detect, bright: 8 of the 18 cards
+    lost at the candidate stage). So the finer windows such a claimer suppressed are
+    judged by stage 2 after all, and kept, beside it, when at least
+    `CARD_CLAIM_MIN_DISCS` of them pass and clash with no other kept window. A large
+    disc's rim seen at finer levels seldom gives three windows stage 2 accepts."""
+    extra = np.zeros(order.size, bool)
+    level = s1.level[order].astype(np.int16)
+    coarse = accepted[first] & (level[first] - level[second] >= CARD_CLAIM_LEVELS)
+    if not coarse.any():
+        return extra
+    claimers, fine = first[coarse], second[coarse]
+    unscored = fine[~np.isfinite(score[order[fine]])]
+    if unscored.size:
+        idx = order[np.unique(unscored)]
+        score[idx] = nn_scores(normalise_windows(s1.windows[idx]), classifier)
+    passed = (score[order[fine]] > np.float32(classifier.nn_threshold)) & inside[fine] & ~accepted[fine]
+    for claimer in np.unique(claimers[passed]):
+        mine = np.zeros(order.size, bool)
+        mine[fine[passed & (claimers == claimer)]] = True
+        # among them, the usual suppression (a disc's windows at neighbouring positions
+        # and levels are one disc); the claimer and the windows kept so far strike none
+        kept = _greedy(order.size, first, second, active=mine)
+        kept &= ~(np.bincount(second, weights=(accepted & ~_one(order.size, claimer))[first],
+                              minlength=order.size) > 0)
+        if kept.sum() >= CARD_CLAIM_MIN_DISCS:
+            extra |= kept
+    return extra
+
+
+def _one(n: int, i: int) -> np.ndarray:
+    mask = np.zeros(n, bool)
+    mask[i] = True
+    return mask
+
+
 def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.ndarray, Stage1Windows, np.ndarray]:
     """`find_candidates` with its workings.
 
@@ -1085,6 +1136,7 @@ def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.nd
         ok = retry & (score[order] > thr) & inside[order]
         if ok.any():
             accepted |= _greedy(n, first, second, active=ok)
+    accepted |= _claimed_discs(s1, classifier, order, first, second, accepted, score, inside[order])
     kept = order[accepted]
     kept = kept[np.argsort(-score[kept], kind="stable")]
     rows = rows[kept]
