@@ -335,9 +335,9 @@ def bin_table(results: dict[str, dict[str, Stats]], conditions: list[str]) -> st
     return "\n".join(lines)
 
 
-def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: list[str]) -> str:
+def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: list[str], speed: bool = True) -> str:
     """The detector's targets (rate against the peers, blur and low light, false and wrong
-    ids, disc RMS, speed), each PASS or FAIL."""
+    ids, disc RMS, and with `speed` its time a frame), each PASS or FAIL."""
     s = results[ours]
     rows = []
     for condition in conditions:
@@ -371,7 +371,8 @@ def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: li
                      + ")", not behind))
     ms = np.concatenate([np.asarray(v.ms) for v in s.values()]) if s else np.zeros(0)
     median = float(np.median(ms)) if ms.size else float("nan")
-    rows.append((f"median <= 4 ms/frame, one thread ({_num(median)} ms over all frames)", median <= 4.0))
+    if speed:
+        rows.append((f"median <= 4 ms/frame, one thread ({_num(median)} ms over all frames)", median <= 4.0))
     lines = ["| target | |", "|---|---|"]
     lines += [f"| {text} | {'PASS' if ok else 'FAIL'} |" for text, ok in rows]
     return "\n".join(lines)
@@ -426,10 +427,11 @@ def main(argv: list[str] | None = None) -> None:
         print("\n" + clean_table(results))
     if args.empty_frames and results:
         print("\n" + empty_table(results, unavailable))
-    ours = next((d.name for d in detectors if d.name.startswith("fidotrack")), None)
-    if ours is not None:
-        print("\n" + target_check(results, ours, table_conditions))
-    else:
+    ours = [d.name for d in detectors if d.name.startswith("fidotrack") and d.name in results]
+    for k, name in enumerate(ours):
+        # the speed target is live tracking's: the survey's detector trades time for cards
+        print(f"\nTargets, {name}:\n\n" + target_check(results, name, table_conditions, speed=k == 0))
+    if not ours:
         print("\nOur detector: " + next((r for n, r in unavailable.items() if n.startswith("fidotrack")),
                                         "not selected"))
     errors = [f"{name} {c}: {st.errors}" for name, by in results.items() for c, st in by.items() if st.errors]

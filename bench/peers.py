@@ -54,6 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from app.core.detection.blobs import BlobParams, blob_candidates
 from app.core.markers import DEFAULT_FAMILY, get_family
 from app.sim.scenes import CARD_TEXTURE_PX, CardArtwork
 # A tag's black square spans the outer extent of our discs across the card (0.075..0.925).
@@ -189,6 +190,7 @@ class FidoDetector(PeerDetector):
     candidates (``app.core.detection.candidates``) and ``app.core.detection.targets.assemble_targets``."""
 
     family: str = DEFAULT_FAMILY
+    thorough: bool = False  # the survey's detector: dark blobs as candidates too
     _detect: Any = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -204,7 +206,7 @@ class FidoDetector(PeerDetector):
             classifier = candidates.load_default_classifier()
             detector = _import("app.core.detection.detector")
             if detector is not None and hasattr(detector, "Detector"):
-                self._detect = detector.Detector(classifier, self.family).detect
+                self._detect = detector.Detector(classifier, self.family, thorough=self.thorough).detect
             kernels = _import("app.core.detection")
             if kernels is not None:
                 kernels.warm_up()  # compile (or load) now: the first timed frame would pay it
@@ -222,69 +224,6 @@ class FidoDetector(PeerDetector):
 
 
 # --- plain threshold-and-blob baseline ------------------------------------------------
-
-
-@dataclass(frozen=True)
-class BlobParams:
-    """Parameters of the plain disc-candidate finder: one setting for every condition.
-
-    Chosen on a small sweep (block 31/51/81 px x C 3/5/7/10, 25 frames of each condition,
-    seeds apart from the benchmark's): every setting finds 93-100% of the true discs
-    within a quarter diameter in default, far, blur and clutter with ~80-200 candidates a
-    frame; 51/5 keeps 97% in dark, where larger C loses discs.
-    """
-
-    block_size: int = 51  # adaptive-threshold window (px): wider than the nearest discs
-    c: float = 5.0  # a pixel is "dark" when this much below its local mean
-    min_area: int = 6  # px: discs of ~3 px diameter and up
-    max_area: int = 4000  # px: discs up to ~70 px across
-    min_axis_ratio: float = 0.3  # minor / major axis: tilts up to ~70 degrees
-    min_fill: float = 0.75  # pixel count / area of the moment ellipse (solid ellipse ~1)
-
-
-def blob_candidates(gray: np.ndarray, params: BlobParams = BlobParams()) -> np.ndarray:
-    """Dark roundish blobs as disc candidates: (N, 4) float64 ``[u, v, radius, score]``.
-
-    Adaptive mean threshold, 8-connected components, and per component its second
-    moments: a solid ellipse fills the ellipse of its moments (area = 4 pi sqrt(det C));
-    code cells (squares), merged blobs and thin structures do not. ``radius`` is the
-    radius of the circle of the same area, ``score`` in (0, 1] how ellipse-like the blob
-    is; the centre is the blob's binary centroid.
-    """
-    gray = np.asarray(gray)
-    dark = cv2.adaptiveThreshold(gray, 1, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
-                                 params.block_size, params.c)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStats(dark, connectivity=8, ltype=cv2.CV_32S)
-    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    keep = (area >= params.min_area) & (area <= params.max_area)
-    keep[0] = False
-    # Blobs touching the image border are cut: their moments say nothing.
-    x0, y0 = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    x1, y1 = x0 + stats[:, cv2.CC_STAT_WIDTH], y0 + stats[:, cv2.CC_STAT_HEIGHT]
-    keep &= (x0 > 0) & (y0 > 0) & (x1 < gray.shape[1]) & (y1 < gray.shape[0])
-    if not keep.any():
-        return np.zeros((0, 4))
-    ys, xs = np.nonzero(dark)
-    lab = labels[ys, xs]
-    sel = keep[lab]
-    lab, xs, ys = lab[sel], xs[sel].astype(np.float64), ys[sel].astype(np.float64)
-    dx, dy = xs - centroids[lab, 0], ys - centroids[lab, 1]
-    sxx = np.bincount(lab, dx * dx, minlength=n)
-    syy = np.bincount(lab, dy * dy, minlength=n)
-    sxy = np.bincount(lab, dx * dy, minlength=n)
-    idx = np.flatnonzero(keep)
-    a = area[idx]
-    cxx, cyy, cxy = sxx[idx] / a + 1 / 12, syy[idx] / a + 1 / 12, sxy[idx] / a  # + pixel extent
-    det = np.maximum(cxx * cyy - cxy * cxy, 1e-12)
-    half_tr = (cxx + cyy) / 2
-    disc = np.sqrt(np.maximum(half_tr**2 - det, 0.0))
-    ratio = np.sqrt(np.maximum(half_tr - disc, 0.0) / (half_tr + disc))
-    fill = a / (4 * np.pi * np.sqrt(det))  # 1 for a solid ellipse, less for a square or ring
-    score = np.clip(np.minimum(fill, 1 / fill), 0, 1)
-    ok = (ratio >= params.min_axis_ratio) & (score >= params.min_fill)
-    radius = np.sqrt(a / np.pi)
-    out = np.column_stack([centroids[idx, 0], centroids[idx, 1], radius, score])[ok]
-    return out[np.argsort(-out[:, 3], kind="stable")]
 
 
 @dataclass
@@ -306,11 +245,13 @@ class BlobBaseline(PeerDetector):
 
 
 def all_detectors(family: str = DEFAULT_FAMILY) -> list[PeerDetector]:
-    """The benchmark's rows: ours, the blob baseline, AprilTag 3 (two decimations) and
+    """The benchmark's rows: ours (as live tracking and as the survey run it), the blob
+    baseline, AprilTag 3 (two decimations) and
     ArUco (two corner refinements). Unavailable ones carry ``available=False`` and a
     ``reason``."""
     return [
         FidoDetector("fidotrack (learned)", None, family=family),
+        FidoDetector("fidotrack, survey (learned + blobs)", None, family=family, thorough=True),
         BlobBaseline("threshold+blob baseline", None, family=family),
         AprilTagDetector("AprilTag 3 tag36h11, decimate 1", apriltag_artwork, quad_decimate=1.0),
         AprilTagDetector("AprilTag 3 tag36h11, decimate 2", apriltag_artwork, quad_decimate=2.0),
