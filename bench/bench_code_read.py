@@ -113,7 +113,10 @@ def size_table(reads: dict[str, Reads]) -> str:
     right = np.concatenate([r.arrays()[0] for r in reads.values()])
     accepted = np.concatenate([r.accepted() for r in reads.values()])
     size = np.concatenate([np.array(r.disc_px) for r in reads.values()])
-    lines = ["| disc diameter | code cell | reads | read right | rate | read wrong |", "|---|---:|---:|---:|---:|---:|"]
+    fit = np.concatenate([r.arrays()[1] for r in reads.values()])
+    unfit = fit > identification.CODE_FIT_MAX  # refused for the fit; the others for the gap
+    lines = ["| disc diameter | code cell | reads | read right | rate | read wrong | refused: fit / gap |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for lo, hi in zip(SIZE_BINS[:-1], SIZE_BINS[1:], strict=True):
         sel = (size >= lo) & (size < hi)
         if not sel.any():
@@ -121,8 +124,10 @@ def size_table(reads: dict[str, Reads]) -> str:
         label = f">= {lo:g} px" if np.isinf(hi) else f"{lo:g}-{hi:g} px"
         cell = f"{0.4 * lo:.1f}+ px" if np.isinf(hi) else f"{0.4 * lo:.1f}-{0.4 * hi:.1f} px"
         ok = int((accepted & right & sel).sum())
+        refused = ~accepted & sel
         lines.append(f"| {label} | {cell} | {int(sel.sum())} | {ok} | {100.0 * ok / sel.sum():.1f}% | "
-                     f"{int((accepted & ~right & sel).sum())} |")
+                     f"{int((accepted & ~right & sel).sum())} | {int((refused & unfit).sum())} / "
+                     f"{int((refused & ~unfit).sum())} |")
     return "\n".join(lines)
 
 

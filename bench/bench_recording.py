@@ -25,7 +25,11 @@ also be rendered along its exposure's path (``--recordings frames "frames, blur 
 the path"``): each frame the mean of renders through the exposure, against the straight
 smear the other recordings use. Any walk can also be filmed through a cinema lens's depth
 of field (``"frames, cine lens depth of field"``: `app.sim.examples.CINE_LENS`, 32 mm at
-f/2.8 focused at 2.5 m, each pixel blurred by its depth's blur circle).
+f/2.8 focused at 2.5 m, each pixel blurred by its depth's blur circle), or lit by lamps
+under the ceiling (``"frames, lamps"``: `ExampleRoom.lamps`, light falling off with
+distance, cards shaded across their faces; ``"frames, lamps and glossy cards"``: the cards'
+paper glossy, `app.sim.examples.GLOSSY_PAPER`); the tracking walk stays evenly lit. The
+furnished room's walk (``--walk furnished``) has cards on boards seen at grazing angles.
 
 Run: ``.venv/bin/python bench/bench_recording.py [--seeds 0 1 2 3] [--frames 300]
 [--bits-per-pixel 0.28] [--walk bench] [--recordings frames "phone video"]`` (markdown
@@ -35,7 +39,6 @@ tables).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from dataclasses import dataclass
@@ -48,10 +51,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
 from app.core.survey import SurveyResult, survey  # noqa: E402
-from app.sim import CINE_LENS, WALKS, ExampleWalk, FrameTruth, PhoneVideo, camera_walk, render_walk  # noqa: E402
+from app.sim import (  # noqa: E402
+    CINE_LENS,
+    GLOSSY_PAPER,
+    WALKS,
+    ExampleWalk,
+    FrameTruth,
+    PhoneVideo,
+    camera_walk,
+    render_walk,
+)
 from bench.walk_runs import detect_frames, map_fit, track_walk  # noqa: E402
 
-RECORDINGS = ("frames", "phone video", "frames, blur along the path", "frames, cine lens depth of field")
+RECORDINGS = ("frames", "phone video", "frames, blur along the path", "frames, cine lens depth of field",
+              "frames, lamps", "frames, lamps and glossy cards")
 
 
 @dataclass
@@ -111,10 +124,14 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
     for recording in recordings:
         # The same walk drawn afresh: the same poses, degradations and noise.
         room = walk.walk(seed, n_frames)
+        lighting = None
+        if recording.startswith("frames, lamps"):
+            lighting = walk.room.lamps(GLOSSY_PAPER if recording.endswith("glossy cards") else 0.0)
         frames, truths, detect_s = detect_frames(
             survey_detector, room.frames(camera, video=video if recording == "phone video" else None,
                                          follow_path=recording == "frames, blur along the path",
-                                         lens=CINE_LENS if recording == "frames, cine lens depth of field" else None),
+                                         lens=CINE_LENS if recording == "frames, cine lens depth of field" else None,
+                                         lighting=lighting),
             n_frames, f"room {seed}: {recording}")
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
@@ -164,7 +181,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()
-    survey_detector = dataclasses.replace(detector, fit_discs=True)
+    survey_detector = Detector.for_survey(detector.classifier)
     video = PhoneVideo(bits_per_pixel=args.bits_per_pixel)
     started = time.perf_counter()
     runs = [run for seed in args.seeds

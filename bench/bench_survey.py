@@ -256,7 +256,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()  # the detector's compiled kernels: not part of the first frame's time
-    survey_detector = detector if args.centroids else dataclasses.replace(detector, fit_discs=True)
+    survey_detector = detector if args.centroids else Detector.for_survey(detector.classifier)
     rooms = [room for seed in tqdm(args.seeds, desc="rooms", unit="room")
              for room in run_room(seed, args.frames, args.tracking_frames, args.card_prior_mm, detector,
                                   survey_detector, args.ideal_px, args.noise_floor, args.draws)]

@@ -1,7 +1,7 @@
 """How close to the truth the survey's own optimum lies: the floor a survey can reach.
 
 For each walk type and room, the walk is rendered, the detector runs on every frame as
-the survey job runs it (``Detector(fit_discs=True)``) and the feature tracker follows the
+the survey job runs it (``Detector.for_survey``: blob candidates too, fitted disc centres) and the feature tracker follows the
 walls (the detected cards left out), as ``bench/bench_walks.py`` does. Then, instead of
 surveying, the survey's state is set to the truth (every frame at its true pose, every
 card at its true discs, the true lens), the feature points are triangulated from it, and
@@ -26,7 +26,6 @@ Run: ``.venv/bin/python bench/bench_survey_floor.py [--rooms 2] [--frames 300]
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -100,7 +99,7 @@ def main() -> None:
                         help="walk types")
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    detector = dataclasses.replace(Detector(classifier=load_default_classifier()), fit_discs=True)
+    detector = Detector.for_survey(load_default_classifier())
     warm_up()
     started = time.perf_counter()
     rows = []

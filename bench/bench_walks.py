@@ -6,7 +6,7 @@ middle of the bench room looking out at its walls, a hand-held pan on one spot (
 baseline), and the same loop in a room of 10 cards spread round photo walls (one or two
 cards in most frames, or none) and round plain painted walls. For each, over several rooms
 (seeds), the walk is rendered, the detector runs on every frame as the survey job runs
-it (``Detector(fit_discs=True)``), and the survey (``app.core.survey.survey``, cards
+it (``Detector.for_survey``: blob candidates too, fitted disc centres), and the survey (``app.core.survey.survey``, cards
 only) maps the room. A tracking walk through the same room is then tracked with the
 surveyed map and with the true one (as ``bench/bench_survey.py`` does).
 
@@ -24,7 +24,6 @@ frames from any direction.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from collections import Counter
@@ -231,7 +230,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()  # the detector's compiled kernels: not part of the first frame's time
-    survey_detector = dataclasses.replace(detector, fit_discs=True)
+    survey_detector = Detector.for_survey(detector.classifier)
     seeds = list(range(args.rooms))
     walks = [WALKS[name] for name in args.walks]
     started = time.perf_counter()

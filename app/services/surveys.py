@@ -261,7 +261,7 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     with context.sessions() as session:
         # Fitted disc centres: the survey averages many views of each disc, and the
         # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
-        detector = Detector(classifiers.load(session, params.classifier_id), params.family, fit_discs=True, thorough=True)
+        detector = Detector.for_survey(classifiers.load(session, params.classifier_id), params.family)
     detections = []
     # The scene's own points, tracked through the frames the survey uses (the cards left
     # out: their discs are tracked as discs).

@@ -5,12 +5,15 @@ measure against it; the service never imports it.
 Modules:
 
 * `app.sim.render`: textured planar quads seen through a `Camera` (`render`).
-* `app.sim.scenes`: cards placed in 3D, rooms with photo-textured or painted walls,
-  named single-frame scenarios and the ground truth of every frame.
+* `app.sim.scenes`: cards placed in 3D, rooms with photo-textured or painted walls and
+  boards standing in them, named single-frame scenarios and the ground truth of every
+  frame.
 * `app.sim.walks`: camera walks through a room (survey loops, tracking, a loop near the
   middle, a pan), hand-held shake and the motion blur of each exposure.
 * `app.sim.degrade`: camera degradations (blur, noise, exposure, glare, JPEG, a thin
   lens's depth of field) and their named presets.
+* `app.sim.surfaces`: what each pixel sees (point, normal, depth, card or not).
+* `app.sim.lighting`: lamps whose light falls off with distance, glossy card paper.
 * `app.sim.video`: a walk recorded as a phone records it (H.264 through libx264).
 * `app.sim.examples`: the named example rooms and walks the benchmarks and tests measure on.
 
@@ -25,6 +28,8 @@ from app.sim.examples import (
     BENCH_ROOM,
     CINE_LENS,
     EXAMPLES,
+    FURNISHED_ROOM,
+    GLOSSY_PAPER,
     PLAIN_ROOM,
     SMALL_ROOM,
     SPARSE_ROOM,
@@ -33,6 +38,7 @@ from app.sim.examples import (
     ExampleWalk,
     RoomWalk,
 )
+from app.sim.lighting import Lamp, Lighting, ceiling_lamps
 from app.sim.render import TexturedQuad, render
 from app.sim.scenes import (
     SCENARIOS,
@@ -55,6 +61,8 @@ __all__ = [
     "BENCH_ROOM",
     "CINE_LENS",
     "EXAMPLES",
+    "FURNISHED_ROOM",
+    "GLOSSY_PAPER",
     "PHONE",
     "PLAIN_ROOM",
     "PRESETS",
@@ -69,6 +77,8 @@ __all__ = [
     "ExposureBlur",
     "FrameScenario",
     "FrameTruth",
+    "Lamp",
+    "Lighting",
     "PhoneVideo",
     "PlacedTarget",
     "RoomWalk",
@@ -80,6 +90,7 @@ __all__ = [
     "Walk",
     "WalkKind",
     "camera_walk",
+    "ceiling_lamps",
     "draw_walk",
     "frame_truth",
     "record",

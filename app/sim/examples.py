@@ -17,6 +17,7 @@ import numpy as np
 
 from app.core.geometry import Camera, Pose
 from app.sim.degrade import ThinLens
+from app.sim.lighting import Lighting, ceiling_lamps
 from app.sim.scenes import CardPlacement, FrameTruth, Scene, WallFinish, render_walk, room_scene
 from app.sim.video import PhoneVideo
 from app.sim.walks import ExposureBlur, Shake, WalkKind, draw_walk
@@ -29,7 +30,13 @@ __all__ = [
     "CINE_LENS",
     "EXAMPLES",
     "EXPOSURE_S",
+    "FURNISHED_ROOM",
+    "FURNISHED_WALK",
+    "GLOSSY_PAPER",
+    "GLOSS_SHININESS",
     "HAND_HELD",
+    "LAMP_AMBIENT",
+    "LAMP_GRID",
     "PAN_WALK",
     "PLAIN_ROOM",
     "PLAIN_WALK",
@@ -73,8 +80,8 @@ class RoomWalk:
     blur: list[ExposureBlur] | None = None
 
     def frames(self, camera: Camera, degradation: str = "default", supersample: int = 2,
-               video: PhoneVideo | None = None, follow_path: bool = False, lens: ThinLens | None = None
-               ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+               video: PhoneVideo | None = None, follow_path: bool = False, lens: ThinLens | None = None,
+               lighting: Lighting | None = None) -> Iterator[tuple[np.ndarray, FrameTruth]]:
         """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
         drawn on from `rng`.
 
@@ -93,6 +100,8 @@ class RoomWalk:
             straight (walks with an exposure only; several renders a frame).
         lens : ThinLens, optional
             The lens's depth of field: each pixel blurred as its depth says.
+        lighting : Lighting, optional
+            Lamps that light the room (`app.sim.lighting`); None: lit alike everywhere.
 
         Yields
         ------
@@ -100,7 +109,7 @@ class RoomWalk:
         truth : FrameTruth
         """
         yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur,
-                               video=video, follow_path=follow_path, lens=lens)
+                               video=video, follow_path=follow_path, lens=lens, lighting=lighting)
 
 
 @dataclass(frozen=True)
@@ -123,6 +132,8 @@ class ExampleRoom:
         How the cards are placed on the walls ("random" or "spread").
     walls : WallFinish
         How the walls look ("photo" mosaics or "plain" paint).
+    furniture : int
+        Boards standing along the walls, a card on each (ids after the wall cards').
     """
 
     name: str
@@ -132,6 +143,22 @@ class ExampleRoom:
     camera: Camera
     cards: CardPlacement = "random"
     walls: WallFinish = "photo"
+    furniture: int = 0
+
+    def lamps(self, gloss: float = 0.0) -> Lighting:
+        """The room lit by `LAMP_GRID` lamps under its ceiling (`ceiling_lamps`), its
+        cards' paper as glossy as `gloss` says (`GLOSSY_PAPER`: photo paper).
+
+        Parameters
+        ----------
+        gloss : float
+            The cards' specular reflectance (0: matte).
+
+        Returns
+        -------
+        Lighting
+        """
+        return ceiling_lamps(self.size, *LAMP_GRID, ambient=LAMP_AMBIENT, gloss=gloss, shininess=GLOSS_SHININESS)
 
     def scene(self, seed: int) -> Scene:
         """The room drawn from `seed` (its cards' places and the wall photographs).
@@ -177,7 +204,7 @@ class ExampleRoom:
         """
         rng = np.random.default_rng(seed)
         scene = room_scene(rng, self.size, n_targets=self.n_targets, marker_size_m=self.marker_size_m,
-                           walls=self.walls, cards=self.cards)
+                           walls=self.walls, cards=self.cards, furniture=self.furniture)
         walk = draw_walk(rng, self.size, n_frames, kind, shake)
         blur = walk.exposure_blur(self.camera, exposure_s, self.size) if exposure_s is not None else None
         return RoomWalk(scene, walk.poses, rng, blur)
@@ -201,8 +228,25 @@ SPARSE_ROOM = ExampleRoom("sparse", (8.0, 6.0, 3.0), 10, 0.2, BENCH_CAMERA, card
 #: same seed, nothing on the walls for natural features to hold on to.
 PLAIN_ROOM = ExampleRoom("plain", (8.0, 6.0, 3.0), 10, 0.2, BENCH_CAMERA, cards="spread", walls="plain")
 
+#: A furnished room: the bench room's size and camera, 24 cards on the walls and 6 more on
+#: boards standing on desks and lecterns along them, turned and leant back (up to nearly
+#: flat): cards seen from above, at angles the wall cards are not.
+FURNISHED_ROOM = ExampleRoom("furnished", (8.0, 6.0, 3.0), 24, 0.2, BENCH_CAMERA, furniture=6)
+
 #: The example rooms by name.
-EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMALL_ROOM, SPARSE_ROOM, PLAIN_ROOM)}
+EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMALL_ROOM, SPARSE_ROOM, PLAIN_ROOM,
+                                                                  FURNISHED_ROOM)}
+
+#: The example rooms' lamps (`ExampleRoom.lamps`): a grid of rows x columns lamps 10 cm
+#: under the ceiling, and the bounce light, as a fraction of a lamp's light 1 m away. In
+#: the bench room, a card on a wall is lit 2-4 times as brightly under a lamp as in a
+#: corner.
+LAMP_GRID = (2, 3)
+LAMP_AMBIENT = 0.08
+#: Glossy photo paper: its highlight's peak, as a fraction of the lamp's light on the
+#: card, and how sharp it is (a Blinn-Phong exponent). Matte paper: 0.
+GLOSSY_PAPER = 0.6
+GLOSS_SHININESS = 60.0
 
 
 #: A phone held in the hand: 0.2 degrees RMS of rotation and 1.5 mm of translation
@@ -274,10 +318,12 @@ PAN_WALK = ExampleWalk("pan", BENCH_ROOM, "pan", Shake(translation_m=0.0), EXPOS
 SPARSE_WALK = ExampleWalk("sparse", SPARSE_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
 #: The centre loop in the sparse room with plain walls.
 PLAIN_WALK = ExampleWalk("plain", PLAIN_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
+#: The centre loop in the furnished room: the cards on its boards seen from above.
+FURNISHED_WALK = ExampleWalk("furnished", FURNISHED_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
 
 #: The example walks by name.
 WALKS: dict[str, ExampleWalk] = {
-    walk.name: walk for walk in (BENCH_WALK, CENTRE_LOOP_WALK, PAN_WALK, SPARSE_WALK, PLAIN_WALK)
+    walk.name: walk for walk in (BENCH_WALK, CENTRE_LOOP_WALK, PAN_WALK, SPARSE_WALK, PLAIN_WALK, FURNISHED_WALK)
 }
 
 

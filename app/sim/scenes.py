@@ -26,9 +26,11 @@ import numpy as np
 from app.core.geometry import Camera, Pose
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family, marker_layout, render_card
 from app.sim import degrade
+from app.sim.lighting import Lighting, shade
 from app.sim.render import TexturedQuad, render
+from app.sim.surfaces import Surfaces, cast_surfaces
 from app.sim.video import PhoneVideo, record
-from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average, room_hits
+from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average
 
 __all__ = [
     "CARD_PLACEMENTS",
@@ -48,7 +50,6 @@ __all__ = [
     "builtin_photos",
     "camera_walk",
     "card_texture",
-    "depth_map",
     "frame_truth",
     "photo_mosaic",
     "plain_paint",
@@ -312,23 +313,45 @@ class Scene:
     targets : list of PlacedTarget
     room_size : tuple of float or None
         (W, D, H) of a box room in metres; None for other scenes.
+    furniture : list of TexturedQuad
+        Boards standing in the room (some with cards on them): drawn like the
+        background, and they hide what lies behind them from the truth as well.
     """
 
     background: list[TexturedQuad]
     targets: list[PlacedTarget]
     room_size: tuple[float, float, float] | None = None
+    furniture: list[TexturedQuad] = field(default_factory=list)
     _quads: list[TexturedQuad] | None = field(default=None, repr=False)
 
     def quads(self) -> list[TexturedQuad]:
-        """Everything to render: the background, then every card's panels (built once).
+        """Everything to render: the background, the furniture, then every card's panels
+        (built once).
 
         Returns
         -------
         list of TexturedQuad
         """
         if self._quads is None:
-            self._quads = [*self.background, *(q for t in self.targets for q in t.quads())]
+            self._quads = [*self.background, *self.furniture, *(q for t in self.targets for q in t.quads())]
         return self._quads
+
+    def surfaces(self, camera: Camera, pose: Pose) -> Surfaces:
+        """What each pixel sees from `pose` (`cast_surfaces`): the background and
+        furniture as planes, each card as its square.
+
+        Parameters
+        ----------
+        camera : Camera
+        pose : Pose
+            Map-to-camera transform.
+
+        Returns
+        -------
+        Surfaces
+        """
+        return cast_surfaces(camera, pose, [q.corners for q in (*self.background, *self.furniture)],
+                             [t.corners for t in self.targets])
 
     def map_document(self, camera: Camera) -> dict[str, Any]:
         """The true map as a map document (docs/map-format.md).
@@ -487,6 +510,7 @@ def room_scene(
     photos: Sequence[np.ndarray] | None = None,
     walls: WallFinish = "photo",
     cards: CardPlacement = "random",
+    furniture: int = 0,
 ) -> Scene:
     """A box room with textured or painted walls, floor and ceiling, and cards on its walls.
 
@@ -515,6 +539,9 @@ def room_scene(
         "photo" (photo mosaics) or "plain" (painted, `plain_paint`).
     cards : CardPlacement, optional
         "random" or "spread".
+    furniture : int, optional
+        Boards standing on furniture along the walls, each with a card on it (ids after
+        the wall cards'), drawn after the wall cards (`_place_boards`).
 
     Returns
     -------
@@ -523,7 +550,7 @@ def room_scene(
     Raises
     ------
     ValueError
-        If the cards do not fit on the walls, or `walls` or `cards` is unknown.
+        If the cards or boards do not fit, or `walls` or `cards` is unknown.
     """
     if walls not in WALL_FINISHES:
         raise ValueError(f"unknown wall finish {walls!r}: one of {', '.join(WALL_FINISHES)}")
@@ -544,7 +571,8 @@ def room_scene(
     side_walls = faces[:4]
     if cards == "spread":
         targets = _spread_cards(rng, side_walls, n_targets, marker_size_m, family, max_bend_m)
-        return Scene(background=background, targets=targets, room_size=size)
+        return _furnish(Scene(background=background, targets=targets, room_size=size), rng, furniture,
+                        marker_size_m, family, max_bend_m)
 
     targets: list[PlacedTarget] = []
     perimeter = np.array([wall.width for wall in side_walls])
@@ -573,7 +601,88 @@ def room_scene(
                 x_axis=x_axis, y_axis=y_axis, bend_m=float(rng.uniform(0.0, max_bend_m)),
             )
         )
-    return Scene(background=background, targets=targets, room_size=size)
+    return _furnish(Scene(background=background, targets=targets, room_size=size), rng, furniture, marker_size_m,
+                    family, max_bend_m)
+
+
+#: A board standing on furniture in a room (`_place_boards`), as a lectern, an easel on a
+#: desk or a drafting table would hold it (the furniture under it is not drawn): its size
+#: (width, height, metres), the height of its lower edge and how far that stands from the
+#: wall (metres), how far it is turned from facing the room's middle about the vertical
+#: and leant back from upright (degrees). Leant back by 70 degrees a board is nearly a
+#: table top: a standing camera sees its card at a grazing angle.
+BOARD_SIZE_M = (0.5, 0.6)
+BOARD_FOOT_M = (0.5, 0.9)
+BOARD_FROM_WALL_M = (0.6, 1.0)
+BOARD_TURN_DEG = 50.0
+BOARD_LEAN_DEG = (10.0, 70.0)
+#: Boards keep this far from the walls and from each other (centres), metres.
+_BOARD_CLEARANCE_M, _BOARD_SPACING_M = 0.05, 0.9
+#: The boards' paint: a mid grey, so the white card stands out as it would on wood.
+_BOARD_GREY = 0.42
+
+
+def _furnish(scene: Scene, rng: np.random.Generator, n_boards: int, marker_size_m: float, family: str,
+             max_bend_m: float) -> Scene:
+    """The scene with `n_boards` boards standing in it, a card on each."""
+    if n_boards <= 0:
+        return scene
+    assert scene.room_size is not None
+    boards, cards = _place_boards(rng, scene.room_size, n_boards, len(scene.targets), marker_size_m, family,
+                                  max_bend_m)
+    return Scene(background=scene.background, targets=[*scene.targets, *cards], room_size=scene.room_size,
+                 furniture=boards)
+
+
+def _place_boards(rng: np.random.Generator, size: tuple[float, float, float], n_boards: int, first_id: int,
+                  marker_size_m: float, family: str, max_bend_m: float
+                  ) -> tuple[list[TexturedQuad], list[PlacedTarget]]:
+    """Boards standing on furniture in front of the side walls, each turned and leant
+    back at random, with a card at a random roll in its middle (2 mm off it)."""
+    width, height = BOARD_SIZE_M
+    lo = np.full(3, _BOARD_CLEARANCE_M)
+    hi = np.asarray(size, np.float64) - _BOARD_CLEARANCE_M
+    side_walls = room_walls(size)[:4]
+    perimeter = np.array([wall.width for wall in side_walls])
+    z = np.array([0.0, 0.0, 1.0])
+    paint = plain_paint(_BOARD_GREY, side_wall=False)
+    boards: list[TexturedQuad] = []
+    cards: list[PlacedTarget] = []
+    centres: list[np.ndarray] = []
+    for _ in range(10000):
+        if len(boards) == n_boards:
+            break
+        wall = side_walls[int(rng.choice(4, p=perimeter / perimeter.sum()))]
+        right, _ = _frame_of(wall.centre, wall.inward, wall.up)
+        along = rng.uniform(-wall.width / 2 + width, wall.width / 2 - width)
+        foot = wall.centre + right * along + wall.inward * rng.uniform(*BOARD_FROM_WALL_M)
+        foot[2] = rng.uniform(*BOARD_FOOT_M)
+        turn = np.deg2rad(rng.uniform(-BOARD_TURN_DEG, BOARD_TURN_DEG))
+        facing = np.cos(turn) * wall.inward + np.sin(turn) * right  # horizontal
+        lean = np.deg2rad(rng.uniform(*BOARD_LEAN_DEG))
+        normal = np.cos(lean) * facing + np.sin(lean) * z  # leant back: its face turns up
+        up = np.cos(lean) * z - np.sin(lean) * facing
+        centre = foot + up * height / 2
+        quad = _plane_quad(centre, normal, up, width, height, paint)
+        if (quad.corners < lo).any() or (quad.corners > hi).any():
+            continue
+        if any(np.linalg.norm(centre - c) < _BOARD_SPACING_M for c in centres):
+            continue
+        board_right, board_down = _frame_of(centre, normal, up)
+        roll = rng.uniform(-np.pi, np.pi)
+        x_axis = np.cos(roll) * board_right + np.sin(roll) * board_down
+        y_axis = -np.sin(roll) * board_right + np.cos(roll) * board_down
+        card_centre = centre + normal * 0.002
+        cards.append(PlacedTarget(
+            id=first_id + len(cards), family=family, size_m=marker_size_m,
+            origin=card_centre - marker_size_m / 2 * (x_axis + y_axis), x_axis=x_axis, y_axis=y_axis,
+            bend_m=float(rng.uniform(0.0, max_bend_m)),
+        ))
+        boards.append(quad)
+        centres.append(centre)
+    if len(boards) < n_boards:
+        raise ValueError(f"cannot place {n_boards} boards in a {size} room")
+    return boards, cards
 
 
 def _spread_cards(rng: np.random.Generator, side_walls: list[Wall], n_targets: int, marker_size_m: float,
@@ -871,31 +980,42 @@ def frame_truth(camera: Camera, pose: Pose, scene: Scene, degradation: dict[str,
     -------
     FrameTruth
     """
-    truths = [t for t in (target_truth(camera, pose, target) for target in scene.targets) if t is not None]
+    truths = []
+    for target in scene.targets:
+        truth = target_truth(camera, pose, target)
+        if truth is None:
+            continue
+        if scene.furniture:
+            hidden = _hidden(pose.position, target.discs, [q.corners for q in scene.furniture])
+            if hidden.any():
+                truth = dataclasses.replace(truth, disc_visible=truth.disc_visible & ~hidden)
+        truths.append(truth)
     return FrameTruth(pose=pose, camera=camera, targets=truths, degradation=degradation or {})
 
 
-def depth_map(camera: Camera, pose: Pose, room_size: tuple[float, float, float]) -> np.ndarray:
-    """Each pixel's depth along the optical axis in a box room, metres: where its ray
-    meets the room's faces (the cards lie on them).
+#: A disc counts as hidden by a board only if the board lies this much nearer along its
+#: ray (metres): a card on the board itself lies 2 mm in front of it.
+_HIDDEN_MARGIN_M = 1e-3
 
-    Parameters
-    ----------
-    camera : Camera
-    pose : Pose
-        Map-to-camera transform; the camera inside the room.
-    room_size : tuple of float
-        (W, D, H) of the room, metres.
 
-    Returns
-    -------
-    (height, width) ndarray
-    """
-    ideal_u, ideal_v = camera.distortion_maps()  # each pixel's ideal position, cached with the camera
-    rays = np.column_stack([(ideal_u.ravel() - camera.cx) / camera.fx, (ideal_v.ravel() - camera.cy) / camera.fy,
-                            np.ones(ideal_u.size)])  # camera frame, z = 1: depth = the ray's length scale
-    hits = room_hits(pose.position, rays @ pose.R, room_size)
-    return pose.transform(hits)[:, 2].reshape(camera.height, camera.width)
+def _hidden(eye: np.ndarray, points: np.ndarray, boards: Sequence[np.ndarray]) -> np.ndarray:
+    """(N,) whether a board lies between `eye` and each of `points` (N, 3)."""
+    d = points - eye
+    length = np.linalg.norm(d, axis=1)
+    hidden = np.zeros(len(points), bool)
+    for corners in boards:
+        origin, ex, ey = corners[0], corners[1] - corners[0], corners[3] - corners[0]
+        n = np.cross(ex, ey)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = float((origin - eye) @ n) / (d @ n)  # along d: 1 at the point
+        hit = eye + t[:, None] * d - origin
+        a, b = hit @ ex / (ex @ ex), hit @ ey / (ey @ ey)
+        hidden |= (t > 0) & (t * length < length - _HIDDEN_MARGIN_M) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+    return hidden
+
+
+#: The depth given to pixels that see no surface (a backdrop's edge), metres.
+_FAR_M = 1e3
 
 
 def render_frame(
@@ -908,6 +1028,7 @@ def render_frame(
     supersample: int = 2,
     exposure: Sequence[Pose] = (),
     lens: degrade.ThinLens | None = None,
+    lighting: Lighting | None = None,
 ) -> tuple[np.ndarray, FrameTruth]:
     """Render one frame and its ground truth.
 
@@ -932,8 +1053,12 @@ def render_frame(
         truth stays `pose`'s: give the exposure-averaged pose, `walks.exposure_average`).
     lens : ThinLens, optional
         The lens's depth of field: each pixel blurred by its depth's blur circle
-        (`degrade.depth_defocus`, the depths from `depth_map`), before the other
-        degradations. Box rooms only (the scene's `room_size`).
+        (`degrade.depth_defocus`, the depths from `Scene.surfaces`), before the other
+        degradations.
+    lighting : Lighting, optional
+        Lamps: each pixel lit by its surface's irradiance, glossy cards' highlights
+        added, the frame auto-exposed (`lighting.shade`), before the depth of field.
+        With `exposure`, lit as seen from `pose`. None: every surface lit alike.
 
     Returns
     -------
@@ -946,10 +1071,13 @@ def render_frame(
                          for p in exposure], axis=0)
     else:
         image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
-    if lens is not None:
-        if scene.room_size is None:
-            raise ValueError("a depth of field needs a box room (the scene's room_size) for the depths")
-        image = degrade.depth_defocus(image, depth_map(camera, pose, scene.room_size), lens, camera.fx)
+    if lens is not None or lighting is not None:
+        surfaces = scene.surfaces(camera, pose)
+        if lighting is not None:
+            image = shade(image, surfaces, lighting, pose.position)
+        if lens is not None:
+            depth = np.where(np.isfinite(surfaces.depth), surfaces.depth, _FAR_M)
+            image = degrade.depth_defocus(image, depth, lens, camera.fx)
     truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
     visible = truth.visible_targets()
     if visible and occlusion_probability > 0 and rng.random() < occlusion_probability:
@@ -1128,6 +1256,7 @@ def render_walk(
     fps: float = FPS,
     follow_path: bool = False,
     lens: degrade.ThinLens | None = None,
+    lighting: Lighting | None = None,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1159,7 +1288,9 @@ def render_walk(
         average pose) instead of smearing it straight: a roll, a turn and the depths
         across the image blur each part of it as they do in a camera.
     lens : ThinLens, optional
-        The lens's depth of field (`render_frame`); box rooms only.
+        The lens's depth of field (`render_frame`).
+    lighting : Lighting, optional
+        The scene's lamps (`render_frame`).
 
     Yields
     ------
@@ -1187,7 +1318,8 @@ def render_walk(
                 sampled = dataclasses.replace(sampled, blur_length=blur[k].length_px, blur_angle=blur[k].angle_rad)
             if video is not None:
                 sampled = dataclasses.replace(sampled, jpeg_quality=None)
-            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path, lens=lens)
+            yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path, lens=lens,
+                               lighting=lighting)
 
     if video is None:
         yield from frames()

@@ -79,6 +79,21 @@ class Detector:
     def __post_init__(self) -> None:
         get_family(self.family)  # KeyError now rather than at the first frame
 
+    @classmethod
+    def for_survey(cls, classifier: DiscClassifier, family: str = DEFAULT_FAMILY) -> Detector:
+        """The survey's detector: blobs as candidates too, small discs' centres fitted.
+
+        Parameters
+        ----------
+        classifier : DiscClassifier
+        family : str
+
+        Returns
+        -------
+        Detector
+        """
+        return cls(classifier, family, fit_discs=True, thorough=True)
+
     def detect(self, gray: np.ndarray, regions: Sequence[Region] | None = None) -> Detection:
         """Detect targets in a frame; with `regions`, only in those crops.
 
