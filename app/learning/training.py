@@ -492,17 +492,6 @@ class TrainingConfig:
     """Knobs of `train_default` (the defaults make the shipped classifier)."""
 
     blob_thresholds: tuple[float, ...] = (0.25, 0.16, 0.16, 0.16)
-    #: The stage-1a thresholds the shipped classifier runs at, when lower than the ones
-    #: it is trained and calibrated at (`blob_thresholds`). A small disc whose card is
-    #: rolled by about 45 degrees has its neighbours in the corners of its 12x12 window,
-    #: which lowers its blob score (median 0.27 against 0.31 upright, 3.3 px discs): at
-    #: level 0, 0.25 keeps 56 % of them and 0.18 86 %. The screen and stage 2, trained on
-    #: windows above 0.25, judge the extra windows by their looks as well (one-off sweep
-    #: of 200 such cards: 109 found at 0.25, 161 at 0.18, at about 0.5 ms a frame more).
-    #: Trained and calibrated at 0.18 instead, the calibration loosens the screen to keep
-    #: 99.9 % of the many more hard discs 1a then passes, for 1.5 ms a frame more and
-    #: no more cards found on the detection bench.
-    detect_blob_thresholds: tuple[float, ...] | None = (0.18, 0.16, 0.16, 0.16)
     marker_frames: int = 840
     empty_frames: int = 150
     photo_copies: int = 3
@@ -559,14 +548,8 @@ def train_default(seed: int = 0, progress: Progress | None = None,
             progress("calibrating thresholds on fresh frames", 0.9)
         frames = calibration_frames(np.random.default_rng(seeds[3]), cfg.calibration_frames_per_scenario)
         classifier, cal = calibrate_thresholds(classifier, frames, cfg.target_disc_recall)
-    else:
-        cal = {}
-    if cfg.detect_blob_thresholds is not None:
-        cal["training_blob_thresholds"] = [float(t) for t in classifier.blob_thresholds]
-        classifier = classifier.replace(blob_thresholds=np.asarray(cfg.detect_blob_thresholds, np.float32))
-    if cfg.calibration_frames_per_scenario > 0:
         cal.update(rejection_stats(classifier, backgrounds))
-    classifier = classifier.replace(stats={**classifier.stats, **cal})
+        classifier = classifier.replace(stats={**classifier.stats, **cal})
     if progress:
         progress("done", 1.0)
     return classifier.replace(stats={

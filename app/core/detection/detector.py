@@ -21,7 +21,16 @@ from app.core.detection.targets import DetectedTarget, assemble_targets
 from app.core.geometry import Region, homographies
 from app.core.markers import DEFAULT_FAMILY, get_family
 
-__all__ = ["Detection", "Detector"]
+__all__ = ["THOROUGH_LEVEL0_BLOB", "Detection", "Detector"]
+
+#: The thorough (survey) detector's stage-1a threshold at pyramid level 0. A card with
+#: 3-4 px discs turned about 45 degrees in its plane has its neighbouring discs in the
+#: corners of each disc's 12x12 window, which lowers the disc's blob score (median 0.27
+#: against 0.31 upright): the classifier's 0.25 keeps 56 % of them, 0.18 86 %. The screen
+#: and stage 2, trained on windows above 0.25, judge the extra windows by their looks as
+#: well. It lets ~50 % more windows of a textured frame through (about 1 ms a frame):
+#: worth it for the survey, which maps far cards once, not for live tracking.
+THOROUGH_LEVEL0_BLOB = 0.18
 
 
 @dataclass(frozen=True)
@@ -64,20 +73,27 @@ class Detector:
         0.029 on discs of 1.5-2 px minor semi-axis (bench/bench_disc_fit.py); ~13 ms
         more per frame. For the survey, not for live tracking.
     thorough : bool
-        Add dark elliptical blobs (`blobs.blob_candidates`, `GRAZING_BLOBS`) to the
-        learned candidates: cards at grazing angles, whose discs the learned stage does
-        not take for discs, are found too (bench_detect: 57 % of the grazing frames'
-        cards with the learned candidates alone, 72 % with both), for about twice the
-        time a frame. For the survey, not for live tracking.
+        Look harder, for about twice the time a frame: add dark elliptical blobs
+        (`blobs.blob_candidates`, `GRAZING_BLOBS`) to the learned candidates, so that
+        cards at grazing angles, whose discs the learned stage does not take for discs,
+        are found too; and run stage 1a at level 0 at `THOROUGH_LEVEL0_BLOB` at most,
+        for the small discs of rolled cards. For the survey, not for live tracking.
     """
 
     classifier: DiscClassifier
     family: str = DEFAULT_FAMILY
     fit_discs: bool = False
     thorough: bool = False
+    _scanning: DiscClassifier = field(init=False, repr=False)  # the classifier the candidate stage runs
 
     def __post_init__(self) -> None:
         get_family(self.family)  # KeyError now rather than at the first frame
+        scanning = self.classifier
+        if self.thorough:
+            thresholds = np.array(self.classifier.blob_thresholds, np.float32)
+            thresholds[0] = min(float(thresholds[0]), THOROUGH_LEVEL0_BLOB)
+            scanning = self.classifier.replace(blob_thresholds=thresholds)
+        object.__setattr__(self, "_scanning", scanning)
 
     @classmethod
     def for_survey(cls, classifier: DiscClassifier, family: str = DEFAULT_FAMILY) -> Detector:
@@ -123,7 +139,7 @@ class Detector:
 
     def _detect(self, gray: np.ndarray) -> Detection:
         start = time.perf_counter()
-        candidates, s1, _ = detect_windows(gray, self.classifier)
+        candidates, s1, _ = detect_windows(gray, self._scanning)
         if self.thorough:
             candidates = _with_blobs(candidates, blob_candidates(gray, GRAZING_BLOBS))
         found = time.perf_counter()
@@ -155,7 +171,7 @@ class Detector:
             # one mosaic, scanned once. Each sits at a multiple of 8 as in the frame,
             # so its pyramid samples are the frame's away from its edges.
             mosaic, places = _pack(gray, boxes)
-            rows, _, _ = detect_windows(mosaic, self.classifier)
+            rows, _, _ = detect_windows(mosaic, self._scanning)
             candidates = _unpack(rows, boxes, places, width, height)
             if self.thorough:
                 blobs = blob_candidates(gray, GRAZING_BLOBS)

@@ -127,16 +127,18 @@ def test_small_cards_rolled_45_degrees_with_faint_codes_are_found() -> None:
     # A card 12 m off (3.3 px discs) turned about 45 degrees in its plane, seen through
     # haze or glare (contrast 0.3-1): its neighbouring discs fall in the corners of each
     # disc's 12x12 window and lower the disc's blob score, so the level-0 threshold the
-    # classifier was trained at (0.25) keeps about half of them. Run at 0.18, most cards
-    # are found, and none as another card.
+    # classifier is trained at (0.25) keeps about half of them. The survey's thorough
+    # detector runs it at 0.18: more cards are found, and none as another card.
     from app.core.detection import Detector, load_default_classifier
     from app.core.geometry import Camera, Pose
     from app.sim.scenes import PlacedTarget, Scene, render_frame, single_frame_scene
 
     camera = Camera.pinhole(800.0, 640, 480)
-    detector = Detector(load_default_classifier())
+    classifier = load_default_classifier()
+    live, thorough = Detector(classifier), Detector(classifier, thorough=True)
     rng = np.random.default_rng(11)
-    found = wrong = 0
+    found = {False: 0, True: 0}
+    wrong = 0
     for _ in range(50):
         scene = single_frame_scene(rng, camera, n_targets=1, distance_m=(12.0, 12.0), tilt_deg=(0, 0),
                                    marker_size_m=0.2)
@@ -148,7 +150,8 @@ def test_small_cards_rolled_45_degrees_with_faint_codes_are_found() -> None:
         image, _ = render_frame(Scene(scene.background, [rolled]), camera, Pose(np.eye(3), np.zeros(3)), rng,
                                 degrade.Degradation(gain=gain, offset=rng.uniform(0.0, 1.0 - gain), read_sigma=0.01,
                                                     jpeg_quality=90))
-        ids = [t.id for t in detector.detect(image).targets]
-        found += card.id in ids
-        wrong += sum(i != card.id for i in ids)
-    assert found >= 40 and wrong == 0, (found, wrong)  # 44 of 50; at 0.25, 35-36
+        for careful, detector in ((False, live), (True, thorough)):
+            ids = [t.id for t in detector.detect(image).targets]
+            found[careful] += card.id in ids
+            wrong += sum(i != card.id for i in ids)
+    assert found[True] >= 42 and found[True] >= found[False] + 6 and wrong == 0, (found, wrong)  # 46 and 36 of 50
