@@ -5,7 +5,7 @@ grazing angle (viewing cosine under about 0.3) images its discs as ellipses 4-8 
 longer than wide, which the learned stage's fixed 12x12 window at four scales does not
 take for discs, while a thresholded blob keeps its shape whatever its elongation
 (bench_detect, grazing frames: 57 % of the cards found with the learned candidates
-alone, 72 % with both). It costs about as much again as the learned stage, so live
+alone, 71 % with both). It costs about as much again as the learned stage, so live
 tracking does without it.
 """
 
