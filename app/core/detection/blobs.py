@@ -43,13 +43,24 @@ GRAZING_BLOBS = BlobParams(min_axis_ratio=0.12)
 
 
 def blob_candidates(gray: np.ndarray, params: BlobParams = BlobParams()) -> np.ndarray:
-    """Dark elliptical blobs as disc candidates: (N, 4) float64 ``[u, v, radius, score]``.
+    """Dark elliptical blobs as disc candidates.
 
     Adaptive mean threshold, 8-connected components, and per component its second
     moments: a solid ellipse fills the ellipse of its moments (area = 4 pi sqrt(det C));
-    code cells (squares), merged blobs and thin structures do not. ``radius`` is the
-    radius of the circle of the same area, ``score`` in (0, 1] how ellipse-like the blob
-    is; the centre is the blob's binary centroid.
+    code cells (squares), merged blobs and thin structures do not.
+
+    Parameters
+    ----------
+    gray : ndarray
+        uint8 greyscale frame.
+    params : BlobParams
+        The threshold and the shapes kept.
+
+    Returns
+    -------
+    ndarray of float64, shape (N, 4)
+        Rows ``[u, v, radius, score]``, best score first: the blob's binary centroid, the
+        radius of the circle of the same area, and in (0, 1] how ellipse-like it is.
     """
     gray = np.asarray(gray)
     dark = cv2.adaptiveThreshold(gray, 1, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
