@@ -1050,8 +1050,8 @@ def _claimed_discs(s1: Stage1Windows, classifier: DiscClassifier, order: np.ndar
 
     Two levels up, a card with 4 px discs is a 4 px blob, and in bright light, its white
     clipped into a white wall, nothing around it tells it from a disc: its window passes
-    both stages and claims the card's four discs (bench_detect, bright: 8 of the 18 cards
-    lost at the candidate stage). So the finer windows such a claimer suppressed are
+    both stages and claims the card's four discs (bench_detect, bright: 3 cards in a
+    one-off count). So the finer windows such a claimer suppressed are
     judged by stage 2 after all, and kept, beside it, when at least
     `CARD_CLAIM_MIN_DISCS` of them pass and clash with no other kept window. A large
     disc's rim seen at finer levels seldom gives three windows stage 2 accepts."""
@@ -1070,7 +1070,8 @@ def _claimed_discs(s1: Stage1Windows, classifier: DiscClassifier, order: np.ndar
         mine = np.zeros(order.size, bool)
         mine[fine[passed & (claimers == claimer)]] = True
         # among them, the usual suppression (a disc's windows at neighbouring positions
-        # and levels are one disc); the claimer and the windows kept so far strike none
+        # and levels are one disc); the claimer strikes none of them, every other window
+        # kept so far does
         kept = _greedy(order.size, first, second, active=mine)
         kept &= ~(np.bincount(second, weights=(accepted & ~_one(order.size, claimer))[first],
                               minlength=order.size) > 0)

@@ -496,3 +496,21 @@ def test_window_geometry_kernels_match_numpy(iterations: int) -> None:
         for g, e in zip(got, expected):
             assert g.dtype == e.dtype and g.shape == e.shape
             np.testing.assert_array_equal(g, e)
+
+
+def test_a_coarse_window_holding_a_whole_small_card_leaves_its_discs(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A brightly lit card with 4 px discs, its white clipped into a white wall: two
+    # levels up the whole card is one dark blob, whose window passes both stages and would
+    # suppress the card's four discs. They are kept beside it, and the card is found.
+    import zlib
+
+    from app.core.detection import Detector
+    from app.sim import scenes
+
+    image, truth = scenes.scenario_frame("bright", np.random.default_rng([0, zlib.crc32(b"bright"), 47, 0]))
+    card = next(t for t in truth.targets if t.id == 53)
+    assert card.visible and card.disc_diameter_px < 5
+    detector = Detector(load_default_classifier())
+    assert 53 in [t.id for t in detector.detect(image).targets]
+    monkeypatch.setattr(cand, "_claimed_discs", lambda *args: np.zeros(args[2].size, bool))
+    assert 53 not in [t.id for t in detector.detect(image).targets]
