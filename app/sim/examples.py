@@ -239,8 +239,8 @@ EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMA
 
 #: The example rooms' lamps (`ExampleRoom.lamps`): a grid of rows x columns lamps 10 cm
 #: under the ceiling, and the bounce light, as a fraction of a lamp's light 1 m away. In
-#: the bench room, a card on a wall is lit 2-4 times as brightly under a lamp as in a
-#: corner.
+#: the bench room, the long wall is lit up to 2.9 times as brightly under a lamp as
+#: between lamps and corners, at card heights.
 LAMP_GRID = (2, 3)
 LAMP_AMBIENT = 0.08
 #: Glossy photo paper: its highlight's peak, as a fraction of the lamp's light on the

@@ -6,8 +6,8 @@ black ink about 0.05) as if every surface were lit alike. `shade` lights it: eac
 sees a surface point (`app.sim.surfaces`) whose irradiance is the bounced light of the
 room (`Lighting.ambient`, the same everywhere) plus each lamp's direct light, which
 falls off with the square of the distance and with the cosine of its incidence
-(Lambert): a card 1.5 m from a lamp is some 25 % brighter at its near edge than at its
-far one. The cards' paper may be glossy (`Lighting.gloss`): it also reflects each lamp
+(Lambert): a card lit at 45 degrees by a lamp 1.5 m away is some 30 % brighter at its
+near edge than at its far one. The cards' paper may be glossy (`Lighting.gloss`): it also reflects each lamp
 as a Blinn-Phong highlight, as bright on black ink as on white paper, which washes the
 code out where it falls and clips the paper's white. The frame is then exposed as a
 camera's automatic exposure would: its median brightness set to `Lighting.key`.
