@@ -59,11 +59,38 @@ class TextFormatter(logging.Formatter):
         return line.rstrip()
 
 
+#: A secret in a URL's query (the documented ``?api_key=`` of ``/track``, for clients that
+#: cannot set headers): the server's own access lines print the whole URL.
+_SECRET_IN_QUERY = re.compile(r"(?i)\b(api_key=)[^&\s\"']*")
+#: The loggers whose lines carry request URLs: uvicorn's access log, and its error log,
+#: where WebSocket handshakes are reported.
+SERVER_LOGGERS = ("uvicorn.access", "uvicorn.error")
+
+
+def redact(text: str) -> str:
+    """`text` with the value of every ``api_key=`` query parameter replaced by ``***``."""
+    return _SECRET_IN_QUERY.sub(r"\1***", text)
+
+
+class RedactSecrets(logging.Filter):
+    """Rewrites a record's message and arguments so that no API key reaches a log line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact(a) if isinstance(a, str) else a for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: redact(v) if isinstance(v, str) else v for k, v in record.args.items()}
+        return True
+
+
 _MARK = "_fidotrack_handler"
 
 
 def configure(fmt: str = "json", level: str = "INFO") -> None:
-    """Send the ``app`` loggers to stderr in `fmt` ("json" or "text"); idempotent."""
+    """Send the ``app`` loggers to stderr in `fmt` ("json" or "text"), and keep API keys
+    out of them and out of the server's own access lines (`RedactSecrets`); idempotent."""
     logger = logging.getLogger("app")
     logger.setLevel(level.upper())
     for handler in list(logger.handlers):
@@ -72,5 +99,10 @@ def configure(fmt: str = "json", level: str = "INFO") -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
     setattr(handler, _MARK, True)
+    handler.addFilter(RedactSecrets())
     logger.addHandler(handler)
     logger.propagate = False
+    for name in SERVER_LOGGERS:
+        server = logging.getLogger(name)
+        if not any(isinstance(f, RedactSecrets) for f in server.filters):
+            server.addFilter(RedactSecrets())

@@ -22,3 +22,25 @@ def test_fidotrack_serve_then_uvicorn_on_same_data(tmp_path: Path) -> None:
     uvicorn = [sys.executable, "-m", "uvicorn", "app.main:app", "--port", str(port)]
     with running_server(data, log, port=port, command=uvicorn) as server:
         assert [e["name"] for e in httpx.get(f"{server.url}/environments").json()] == ["lab"]
+
+
+def test_api_keys_in_urls_never_reach_the_log(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # Clients that cannot set headers pass ``?api_key=`` on /track; the server prints
+    # every URL it serves. Accepted or refused, the key must not be in the log.
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    monkeypatch.setenv("FIDOTRACK_API_KEYS", "true")
+    secret = "fdtk_SeCrEt0123456789"
+    log = tmp_path / "server.log"
+    with running_server(tmp_path / "data", log) as server:
+        assert httpx.get(f"{server.url}/environments?api_key={secret}").status_code in (401, 403)
+        ws_url = server.url.replace("http://", "ws://")
+        try:
+            with connect(f"{ws_url}/track?environment_id=1&api_key={secret}", open_timeout=5):
+                pass
+        except InvalidStatus:
+            pass
+    text = log.read_text()
+    assert "api_key=***" in text  # the lines are there, the key is not
+    assert secret not in text
