@@ -3,10 +3,12 @@ application's shared state, for HTTP routes and WebSockets alike."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, WebSocketException
+from fastapi import Depends, HTTPException, Path, WebSocketException
+from pydantic import BeforeValidator
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
@@ -52,6 +54,20 @@ def get_tracking(connection: HTTPConnection) -> TrackingService:
 def get_track_streams(connection: HTTPConnection) -> TrackStreams:
     return connection.app.state.track_streams
 
+
+_ROW_ID = re.compile(r"[1-9][0-9]{0,17}")
+
+
+def _row_id(value: object) -> object:
+    if isinstance(value, str) and not _ROW_ID.fullmatch(value):
+        raise ValueError("must be a positive whole number in plain digits")
+    return value
+
+
+#: A stored row's id in a URL path: plain digits only. An int path parameter alone would
+#: also take "1 ", "+1" and "01" for row 1, so that a mistyped URL (a stray space) acts on
+#: a row all the same.
+RowId = Annotated[int, BeforeValidator(_row_id), Path()]
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EngineDep = Annotated[Engine, Depends(get_engine)]

@@ -4,17 +4,31 @@ configuration pages of the documentation are generated from it)."""
 
 from __future__ import annotations
 
+import unicodedata
 from datetime import UTC, datetime
 from enum import IntEnum, StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 # JSON as Python parses it accepts NaN and Infinity; nothing stored may hold them.
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegativeFinite = Annotated[float, Field(allow_inf_nan=False, ge=0)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 Row3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+
+
+def _printable(value: str) -> str:
+    # A name is shown in listings, logs and terminals: no NUL, no control characters
+    # (a newline or an escape sequence in a name would forge or garble what shows it).
+    bad = next((c for c in value if unicodedata.category(c) in ("Cc", "Cs")), None)
+    if bad is not None:
+        raise ValueError(f"must not contain control characters (found U+{ord(bad):04X})")
+    return value
+
+
+#: A name people give a thing (an environment, a classifier, an API key).
+Name = Annotated[str, Field(min_length=1, max_length=200), AfterValidator(_printable)]
 
 
 def _aware(value: datetime | None) -> datetime | None:
@@ -44,7 +58,7 @@ def _check_family(name: str) -> str:
 class EnvironmentCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
 
-    name: str = Field(min_length=1, max_length=200)
+    name: Name
     marker_size_m: float = Field(
         gt=0, le=10, allow_inf_nan=False, description="Side of the printed card in metres."
     )
@@ -57,7 +71,7 @@ class EnvironmentCreate(BaseModel):
 class EnvironmentUpdate(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
 
-    name: str | None = Field(None, min_length=1, max_length=200)
+    name: Name | None = None
     marker_size_m: float | None = Field(None, gt=0, le=10, allow_inf_nan=False)
     classifier_id: int | None = None
 
@@ -437,7 +451,7 @@ class Readiness(BaseModel):
 class ApiKeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(min_length=1, max_length=200)
+    name: Name
     scopes: list[Literal["read", "track", "admin"]] = Field(min_length=1, max_length=3)
 
 

@@ -6,9 +6,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
-from app.deps import JobsDep, SessionDep, SettingsDep
+from app.deps import JobsDep, RowId, SessionDep, SettingsDep
 from app.routers.uploads import read_upload
-from app.schemas import ClassifierOut, JobOut, Problem
+from app.schemas import ClassifierOut, JobOut, Name, Problem
 from app.services import classifiers, training
 
 router = APIRouter(prefix="/classifiers", tags=["classifiers"])
@@ -21,7 +21,7 @@ def list_classifiers(session: SessionDep) -> list[ClassifierOut]:
 
 
 @router.get("/{classifier_id}", response_model=ClassifierOut, responses=_404)
-def get_classifier(classifier_id: int, session: SessionDep) -> ClassifierOut:
+def get_classifier(classifier_id: RowId, session: SessionDep) -> ClassifierOut:
     return classifiers.get(session, classifier_id)
 
 
@@ -33,7 +33,7 @@ async def train_classifier(
     settings: SettingsDep,
     runner: JobsDep,
     images: Annotated[list[UploadFile], File(description="JPEG/PNG frames of the site with targets in view.")],
-    name: Annotated[str, Form(min_length=1, max_length=200)],
+    name: Annotated[Name, Form()],
     base_classifier_id: Annotated[int | None, Form(description="Classifier to adapt; default if omitted.")] = None,
     family: Annotated[str, Form()] = "fido3x3",
 ) -> JobOut:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from app.deps import SessionDep
+from app.deps import RowId, SessionDep
 from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, Problem
 from app.services import environments
 
@@ -25,30 +25,30 @@ def list_environments(session: SessionDep) -> list[EnvironmentOut]:
 
 
 @router.get("/{environment_id}", response_model=EnvironmentOut, responses=_404)
-def get_environment(environment_id: int, session: SessionDep) -> EnvironmentOut:
+def get_environment(environment_id: RowId, session: SessionDep) -> EnvironmentOut:
     return environments.get(session, environment_id)
 
 
 @router.patch("/{environment_id}", response_model=EnvironmentOut, responses=_404)
 def update_environment(
-    environment_id: int, changes: EnvironmentUpdate, session: SessionDep
+    environment_id: RowId, changes: EnvironmentUpdate, session: SessionDep
 ) -> EnvironmentOut:
     return environments.update(session, environment_id, changes)
 
 
 @router.delete("/{environment_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_404)
-def delete_environment(environment_id: int, session: SessionDep) -> None:
+def delete_environment(environment_id: RowId, session: SessionDep) -> None:
     environments.delete(session, environment_id)
 
 
 @router.get("/{environment_id}/map", response_model=MapDocument, responses=_404)
-def get_map(environment_id: int, session: SessionDep) -> MapDocument:
+def get_map(environment_id: RowId, session: SessionDep) -> MapDocument:
     """The environment's map: camera and 3D disc centres of every target."""
     return environments.get_map(session, environment_id)
 
 
 @router.put("/{environment_id}/map", response_model=MapDocument, responses=_404)
-def put_map(environment_id: int, document: MapDocument, session: SessionDep) -> MapDocument:
+def put_map(environment_id: RowId, document: MapDocument, session: SessionDep) -> MapDocument:
     """Replace the map whole (a map measured by hand, or an exported one). A document
     with wrong shapes or non-finite numbers is refused whole and the stored map stays."""
     return environments.put_map(session, environment_id, document)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from app.deps import SessionDep
+from app.deps import RowId, SessionDep
 from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut, Problem
 from app.services import keys
 
@@ -23,5 +23,5 @@ def list_keys(session: SessionDep) -> list[ApiKeyOut]:
 
 
 @router.delete("/{key_id}", response_model=ApiKeyOut, responses={404: {"model": Problem}})
-def revoke_key(key_id: int, session: SessionDep) -> ApiKeyOut:
+def revoke_key(key_id: RowId, session: SessionDep) -> ApiKeyOut:
     return ApiKeyOut.model_validate(keys.revoke(session, key_id), from_attributes=True)

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
-from app.deps import JobsDep, SessionDep, SettingsDep
+from app.deps import JobsDep, RowId, SessionDep, SettingsDep
 from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
 from app.services import alignments, surveys
 
@@ -20,7 +20,7 @@ router = APIRouter(prefix="/environments", tags=["surveys"])
     responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
 )
 def start_survey(
-    environment_id: int,
+    environment_id: RowId,
     response: Response,
     session: SessionDep,
     settings: SettingsDep,
@@ -54,7 +54,7 @@ def start_survey(
     response_model=AlignmentResult,
     responses={404: {"model": Problem}, 422: {"model": Problem}},
 )
-def align_map(environment_id: int, spec: AlignmentRequest, session: SessionDep) -> AlignmentResult:
+def align_map(environment_id: RowId, spec: AlignmentRequest, session: SessionDep) -> AlignmentResult:
     """Move the map into world coordinates: a similarity transform (scale, rotation,
     translation) fitted to three or more discs with known world positions (residuals in
     the reply), or one target chosen as the origin with its plane as z = 0."""

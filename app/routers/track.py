@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from starlette.concurrency import run_in_threadpool
 
-from app.deps import SettingsDep, TrackingDep, TrackStreamsDep
+from app.deps import RowId, SettingsDep, TrackStreamsDep, TrackingDep
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
 from app.services.streaming import ClientGone, Refused
@@ -22,7 +22,7 @@ router = APIRouter(tags=["tracking"])
     responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
 )
 async def locate(
-    environment_id: int,
+    environment_id: RowId,
     request: Request,
     settings: SettingsDep,
     tracking: TrackingDep,

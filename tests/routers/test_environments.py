@@ -154,3 +154,26 @@ def test_deleting_environment_deletes_its_map_and_ids_are_not_reused(client: Tes
         assert connection.execute(text("SELECT count(*) FROM maps")).scalar_one() == 0
     # A client holding the old id must not silently reach a new environment.
     assert _create(client, name="other")["id"] != env["id"]
+
+
+@pytest.mark.parametrize("path_id", ["1%20", "%201", "+1", "01", "1.0", "0", "-1", "1e0", "%D9%A1"])
+def test_an_id_in_a_path_is_plain_digits_or_nothing_is_touched(client: TestClient, path_id: str) -> None:
+    # int("1 ") is 1: without a strict id, DELETE /environments/1%20 deleted environment 1.
+    env = client.post("/environments", json={"name": "kept", "marker_size_m": 0.2}).json()
+    assert env["id"] == 1
+    for method in ("GET", "DELETE"):
+        reply = client.request(method, f"/environments/{path_id}")
+        assert reply.status_code == 422, (method, path_id, reply.status_code)
+        assert "environment_id" in reply.text
+    assert client.get("/environments/1").json()["name"] == "kept"
+
+
+@pytest.mark.parametrize("name", ["a\x00b", "line\nbreak", "esc\x1b[31mred", "tab\there", "del\x7f"])
+def test_names_with_control_characters_are_refused(client: TestClient, name: str) -> None:
+    reply = client.post("/environments", json={"name": name, "marker_size_m": 0.2})
+    assert reply.status_code == 422 and "control characters" in reply.text
+    assert client.get("/environments").json() == []
+    ok = client.post("/environments", json={"name": "Studio B — grün, 東京", "marker_size_m": 0.2})
+    assert ok.status_code == 201
+    assert client.patch(f"/environments/{ok.json()['id']}", json={"name": name}).status_code == 422
+    assert client.get(f"/environments/{ok.json()['id']}").json()["name"] == "Studio B — grün, 東京"
