@@ -33,3 +33,10 @@ def fail(params: NoParams, context: JobContext) -> JobResult:
     """Fail half way, as a survey of a video without markers does."""
     context.progress("failing", 0.5)
     raise ValueError("the survey video holds no markers")
+
+
+@job_handler("crash", NoParams)
+def crash(params: NoParams, context: JobContext) -> JobResult:
+    """Fail on a fault of the service's own (an indexing bug), not on the input."""
+    context.progress("crashing", 0.5)
+    raise IndexError("index 0 is out of bounds for axis 0 with size 0")

@@ -42,6 +42,13 @@ def test_failed_job_says_why(client: TestClient) -> None:
     assert "no markers" in body["error"] and body["finished_at"]
 
 
+def test_a_fault_of_the_service_is_reported_without_its_internals(client: TestClient) -> None:
+    job_id = _submit(client, "crash", NoParams())
+    body = wait_for_job(client, job_id, {"failed"}, timeout=60, poll=0.1)
+    assert "out of bounds" not in body["error"] and "axis" not in body["error"]
+    assert "internal error (IndexError)" in body["error"] and job_id in body["error"]
+
+
 def test_cancel_stops_a_running_job(client: TestClient) -> None:
     job_id = _submit(client, "count", CountParams(steps=400, sleep=0.05))
     wait_for_job(client, job_id, {"running"}, timeout=60, poll=0.1)

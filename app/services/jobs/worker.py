@@ -12,6 +12,7 @@ from pathlib import Path
 from app import logs
 from app.db import make_engine, make_sessionmaker
 from app.schemas import JobStatus
+from app.services.errors import ServiceError
 from app.services.jobs import store
 from app.services.jobs.context import Cancelled, JobContext
 from app.services.jobs.registry import RegisteredHandler
@@ -26,6 +27,17 @@ class WorkerSetup:
     database_url: str
     busy_timeout_ms: int
     data_dir: Path
+
+
+def failure_message(exc: Exception, job_id: str) -> str:
+    """What a failed job tells its client. A refusal of the input (a `ServiceError`, or a
+    `ValueError` such as the survey's `SurveyError`) says why in its own words; any other
+    exception is a fault of the service, whose text (``index 0 is out of bounds...``)
+    means nothing to the client and may show internals: the log has it, with the job's
+    id."""
+    if isinstance(exc, ServiceError | ValueError):
+        return str(exc) or type(exc).__name__
+    return f"internal error ({type(exc).__name__}); the server log has the details under job {job_id}"
 
 
 def run_job(setup: WorkerSetup, job_id: str, handler: RegisteredHandler) -> None:
@@ -54,7 +66,7 @@ def run_job(setup: WorkerSetup, job_id: str, handler: RegisteredHandler) -> None
             log.info("job %s cancelled", job_id)
         except Exception as exc:  # noqa: BLE001  (any failure of the job is reported on the job)
             log.exception("job %s failed", job_id)
-            message = str(exc) or type(exc).__name__
+            message = failure_message(exc, job_id)
             with sessions() as session:
                 store.fail(session, [job_id], message, statuses=(JobStatus.RUNNING,))
             log.debug("%s", traceback.format_exc())
