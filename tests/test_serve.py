@@ -44,3 +44,27 @@ def test_api_keys_in_urls_never_reach_the_log(tmp_path: Path, monkeypatch) -> No
     text = log.read_text()
     assert "api_key=***" in text  # the lines are there, the key is not
     assert secret not in text
+
+
+def test_clients_leaving_right_after_the_handshake_leave_no_traceback(tmp_path: Path) -> None:
+    # The server's first message (the hello, or the refusal of an unknown environment)
+    # goes to a client that has already gone: that is a client leaving, not a fault.
+    import socket
+
+    from websockets.sync.client import connect
+
+    from tests.conftest import example_map
+
+    log = tmp_path / "server.log"
+    with running_server(tmp_path / "data", log) as server:
+        env = httpx.post(f"{server.url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
+        assert httpx.put(f"{server.url}/environments/{env['id']}/map", json=example_map()).status_code == 200
+        ws_url = server.url.replace("http://", "ws://")
+        for environment_id in (env["id"], 999) * 5:
+            ws = connect(f"{ws_url}/track?environment_id={environment_id}", open_timeout=5)
+            ws.socket.shutdown(socket.SHUT_RDWR)  # gone at once, without a closing handshake
+            ws.socket.close()
+        with connect(f"{ws_url}/track?environment_id={env['id']}", open_timeout=5) as ws:
+            assert '"hello"' in ws.recv(timeout=5)  # and the server still serves
+    text = log.read_text()
+    assert "Traceback" not in text, text[-3000:]

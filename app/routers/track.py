@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
@@ -58,7 +59,10 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
         async with streams.connection(environment_id):
             await streams.serve(channel, _environment_id(environment_id))
     except Refused as refused:
-        await channel.refuse(refused.refusal)
+        with contextlib.suppress(ClientGone):
+            await channel.refuse(refused.refusal)
+    except ClientGone:
+        pass  # the client left before the first message reached it: nothing to answer
 
 
 def _environment_id(text: str | None) -> int:
@@ -86,15 +90,16 @@ class _WebSocketChannel:
             if (text := message.get("text")) is not None:
                 return text
 
-    async def send(self, message: TrackServerMessage) -> None:
+    async def send(self, message: TrackServerMessage | TrackRefusal) -> None:
         try:
             await self.websocket.send_json(message.model_dump())
-        except WebSocketDisconnect:
+        except (WebSocketDisconnect, OSError):  # the server's own ClientDisconnected is an OSError
             raise ClientGone from None
 
     async def close(self, code: TrackCloseCode, reason: str = "") -> None:
         await self.websocket.close(code=code, reason=reason)
 
     async def refuse(self, refusal: TrackRefusal) -> None:
-        await self.websocket.send_json(refusal.model_dump())
-        await self.close(refusal.close_code, refusal.message[:120])
+        await self.send(refusal)
+        with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):  # gone meanwhile
+            await self.close(refusal.close_code, refusal.message[:120])
