@@ -7,7 +7,8 @@ import re
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Path, WebSocketException
+import anyio
+from fastapi import Depends, HTTPException, Path, WebSocket, WebSocketException
 from pydantic import BeforeValidator
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session
@@ -115,10 +116,12 @@ def presented_key(connection: HTTPConnection) -> str | None:
     return key
 
 
-def authorize(connection: HTTPConnection) -> keys.Principal | None:
+async def authorize(connection: HTTPConnection) -> keys.Principal | None:
     """Every route's gate when ``api_keys`` is on (the policy is `required_scope`).
-    HTTP: 401 without a valid key, 403 without the scope. WebSocket: closed before
-    accept with code 1008 and the reason."""
+    HTTP: 401 without a valid key, 403 without the scope. WebSocket: accepted, then
+    closed with code 1008 and the reason (closed before accepting, a server can only
+    answer the handshake with a bare HTTP 403, which no WebSocket client can read a
+    reason from)."""
     if not connection.app.state.settings.api_keys:
         return None
     route = connection.scope.get("route")
@@ -126,16 +129,21 @@ def authorize(connection: HTTPConnection) -> keys.Principal | None:
     scope = required_scope(method, getattr(route, "path", connection.url.path))
     if scope is None:
         return None
-    with connection.app.state.sessionmaker() as session:
-        principal = keys.verify(session, presented_key(connection))
+    principal = await anyio.to_thread.run_sync(_verify, connection)
     if principal is None or not principal.allows(scope):
         reason = ("a valid API key is required (header X-API-Key)" if principal is None
                   else f"this API key lacks the {scope!r} scope")
-        if connection.scope["type"] == "websocket":
+        if isinstance(connection, WebSocket):
+            await connection.accept()
             raise WebSocketException(WS_POLICY_VIOLATION, reason)
         raise HTTPException(401 if principal is None else 403, reason,
                             headers={"WWW-Authenticate": "ApiKey"} if principal is None else None)
     return principal
+
+
+def _verify(connection: HTTPConnection) -> keys.Principal | None:
+    with connection.app.state.sessionmaker() as session:
+        return keys.verify(session, presented_key(connection))
 
 
 PrincipalDep = Annotated[keys.Principal | None, Depends(authorize)]

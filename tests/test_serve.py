@@ -68,3 +68,21 @@ def test_clients_leaving_right_after_the_handshake_leave_no_traceback(tmp_path: 
             assert '"hello"' in ws.recv(timeout=5)  # and the server still serves
     text = log.read_text()
     assert "Traceback" not in text, text[-3000:]
+
+
+def test_track_refused_for_its_key_says_why_with_close_code_1008(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # A real server can answer a refused handshake only with a bare HTTP 403: the client
+    # learns nothing. The connection is accepted and closed with 1008 and the reason.
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    monkeypatch.setenv("FIDOTRACK_API_KEYS", "true")
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        ws_url = server.url.replace("http://", "ws://")
+        with connect(f"{ws_url}/track?environment_id=1", open_timeout=5) as ws:
+            try:
+                ws.recv(timeout=5)
+                raise AssertionError("the server sent a message to a client without a key")
+            except ConnectionClosed as closed:
+                assert closed.rcvd is not None and closed.rcvd.code == 1008
+                assert "API key" in closed.rcvd.reason
