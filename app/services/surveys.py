@@ -107,6 +107,12 @@ def probe_video(path: Path, settings: Settings) -> VideoInfo:
     return VideoInfo(width, height, frames, fps, codec)
 
 
+#: How far a survey's given intrinsics may differ in aspect ratio (width / height) from
+#: the upload's, as a fraction: a resolution rounded to whole pixels (1920x1080 against
+#: 854x480) differs by well under 1 %.
+ASPECT_TOLERANCE = 0.01
+
+
 def parse_intrinsics(text: str | None) -> CameraModel | None:
     """The ``intrinsics`` form field (JSON), or None when it is absent or blank."""
     if text is None or not text.strip():
@@ -178,6 +184,12 @@ def submit_survey(
         else:
             width, height = _store_images(images, folder, settings, budget)
         if camera is not None and (camera.width, camera.height) != (width, height):
+            # The same lens at another resolution keeps the image's shape; intrinsics of
+            # another shape are for another camera (or mistyped), not to be stretched.
+            if abs(camera.width * height - camera.height * width) > ASPECT_TOLERANCE * camera.height * width:
+                raise Invalid(f"intrinsics: given for {camera.width}x{camera.height}, whose shape differs from the "
+                              f"upload's {width}x{height}; give them for this camera at any resolution of the "
+                              "same shape")
             scaled = Camera.from_dict(camera.model_dump()).scaled_to(width, height)
             camera = CameraModel.model_validate(scaled.to_dict())
         params = SurveyParams(

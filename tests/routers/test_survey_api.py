@@ -169,6 +169,10 @@ def test_bad_uploads_are_refused_and_leave_nothing(client: TestClient, settings,
     assert reply.status_code == 422 and "intrinsics" in reply.json()["detail"]
     reply = _post_video(client, env, video, intrinsics=json.dumps({"width": 640}))
     assert reply.status_code == 422 and "intrinsics" in reply.json()["detail"]
+    # intrinsics of another shape than the video's are refused, not stretched onto it
+    wrong_shape = {**camera.to_dict(), "width": 1, "height": 20000}
+    reply = _post_video(client, env, video, intrinsics=json.dumps(wrong_shape))
+    assert reply.status_code == 422 and "shape" in reply.json()["detail"], reply.text
     reply = _post_video(client, env, video, max_frames="1")
     assert reply.status_code == 422
     image = cv2.imencode(".png", np.full((240, 320), 200, np.uint8))[1].tobytes()
