@@ -8,6 +8,11 @@ from pydantic import Field, computed_field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
+#: The most files a survey upload's form is parsed with; `Settings.max_survey_images` may
+#: not exceed it. Past it the form is refused before the service sees it (HTTP 400).
+MAX_SURVEY_FILES = 20000
+
+
 class Settings(BaseSettings):
     """Everything a deployment can set; ``uvicorn app.main:app`` reads these."""
 
@@ -36,7 +41,9 @@ class Settings(BaseSettings):
     max_training_images: int = Field(200, ge=1, description="Most images in one training upload.")
     max_video_frames: int = Field(20_000, ge=1, description="Longest survey video, in frames.")
     max_video_pixels: int = Field(3840 * 2160, ge=64 * 64, description="Largest survey video frame (width*height).")
-    max_survey_images: int = Field(2000, ge=1, description="Most images in one survey upload.")
+    max_survey_images: int = Field(2000, ge=1, le=MAX_SURVEY_FILES, description=(
+        f"Most images in one survey upload (at most {MAX_SURVEY_FILES}, the most files the upload's form is read "
+        "with)."))
     survey_frames: int = Field(1000, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
     max_track_fps: float = Field(120.0, gt=0, description="Frames per second one /track client may send.")
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")

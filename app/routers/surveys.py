@@ -9,6 +9,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from app.deps import JobsDep, RowId, SessionDep, SettingsDep
 from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
 from app.services import alignments, surveys
+from app.settings import MAX_SURVEY_FILES
 
 router = APIRouter(prefix="/environments", tags=["surveys"])
 
@@ -16,6 +17,9 @@ router = APIRouter(prefix="/environments", tags=["surveys"])
 @router.post(
     "/{environment_id}/survey",
     status_code=status.HTTP_202_ACCEPTED,
+    # The form parser's own default (1000 files) would refuse a survey of more images than
+    # that with a bare 400 before the service's limit (`max_survey_images`) is applied.
+    form_limits={"max_files": MAX_SURVEY_FILES + 1},
     response_model=JobOut,
     responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
 )

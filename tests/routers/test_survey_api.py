@@ -14,6 +14,8 @@ from fastapi.testclient import TestClient
 
 from app.core.geometry.alignment import similarity_from_points
 from app.core.geometry.camera import Camera
+from app.main import create_app
+from app.settings import Settings
 from app.sim.scenes import Scene, camera_walk, render_walk, room_scene
 from tests.conftest import example_map, wait_for_job
 
@@ -182,6 +184,19 @@ def test_bad_uploads_are_refused_and_leave_nothing(client: TestClient, settings,
     uploads = settings.data_dir / "uploads"
     assert not uploads.exists() or not any(uploads.iterdir())
     assert client.get(f"/environments/{env}").json()["has_map"] is False
+
+
+def test_more_images_than_the_limit_get_its_422_not_the_form_parsers_400(tmp_path: Path) -> None:
+    # The form parser's default (1000 files) used to answer first, with a bare 400.
+    settings = Settings(data_dir=tmp_path / "data", max_survey_images=1000)
+    image = cv2.imencode(".png", np.full((24, 32), 200, np.uint8))[1].tobytes()
+    with TestClient(create_app(settings)) as client:
+        env = _environment(client)
+        files = [("images", (f"{k}.png", image, "image/png")) for k in range(1001)]
+        reply = client.post(f"/environments/{env}/survey", files=files)
+        assert reply.status_code == 422 and "at most 1000 images" in reply.json()["detail"], reply.text[:200]
+        uploads = settings.data_dir / "uploads"
+        assert not uploads.exists() or not any(uploads.iterdir())
 
 
 def test_survey_from_a_set_of_images(client: TestClient, room, tmp_path: Path) -> None:
