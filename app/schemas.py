@@ -92,6 +92,18 @@ class EnvironmentOut(BaseModel):
 # --- maps ---------------------------------------------------------------------------
 
 
+#: The numbers a camera may hold, checked where cameras enter (maps, survey intrinsics,
+#: /track configs): far beyond any real lens, but not so far that the solvers' arithmetic
+#: overflows (a focal length of 1e300 or 1e-300, or a distortion of 1e300, made the
+#: pose solvers fail with a 500).
+FOCAL_PX_RANGE = (1e-3, 1e7)
+MAX_DISTORTION = 1e4
+#: How far the principal point may lie outside the image, in image sizes.
+PRINCIPAL_POINT_SPAN = 10.0
+#: How far a map's discs may lie from its origin, metres.
+MAX_COORDINATE_M = 1e6
+
+
 class CameraModel(BaseModel):
     """OpenCV camera: ``K`` 3x3 and distortion ``[k1, k2, p1, p2, k3]``."""
 
@@ -112,14 +124,28 @@ class CameraModel(BaseModel):
             raise ValueError("K must be upper triangular with last row [0, 0, 1]")
         if k[0][0] <= 0 or k[1][1] <= 0:
             raise ValueError("K must have positive focal lengths K[0][0] and K[1][1]")
+        lo, hi = FOCAL_PX_RANGE
+        if not (lo <= k[0][0] <= hi and lo <= k[1][1] <= hi):
+            raise ValueError(f"K's focal lengths must lie in [{lo:g}, {hi:g}] px")
+        if abs(k[0][1]) > k[0][0]:
+            raise ValueError("K's skew K[0][1] must not exceed its focal length K[0][0]")
+        span = PRINCIPAL_POINT_SPAN
+        if abs(k[0][2]) > span * self.width or abs(k[1][2]) > span * self.height:
+            raise ValueError(f"K's principal point must lie within {span:g} image sizes of the image")
+        if any(abs(d) > MAX_DISTORTION for d in self.dist):
+            raise ValueError(f"distortion coefficients must lie in [-{MAX_DISTORTION:g}, {MAX_DISTORTION:g}]")
         return self
+
+
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
 
 
 class MapTarget(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     id: int = Field(ge=0)
-    discs: Annotated[list[Vec3], Field(min_length=4, max_length=4)] = Field(
+    discs: Annotated[list[Annotated[list[Coordinate], Field(min_length=3, max_length=3)]],
+                     Field(min_length=4, max_length=4)] = Field(
         description="3D centres of discs 0..3 (top-left, top-right, bottom-right, bottom-left)."
     )
     std_m: Annotated[list[Annotated[float, Field(allow_inf_nan=False, ge=0, le=1000)]],

@@ -108,6 +108,11 @@ def _broken_maps() -> list[tuple[str, dict]]:
     case("bad frame", lambda d: d.__setitem__("frame", "camera"))
     case("id outside family", lambda d: d["targets"][1].__setitem__("id", 60))
     case("zero width", lambda d: d["camera"].__setitem__("width", 0))
+    case("huge focal", lambda d: d["camera"]["K"][0].__setitem__(0, 1e300))
+    case("tiny focal", lambda d: d["camera"]["K"][1].__setitem__(1, 1e-300))
+    case("huge distortion", lambda d: d["camera"]["dist"].__setitem__(0, 1e300))
+    case("far principal point", lambda d: d["camera"]["K"][0].__setitem__(2, 1e12))
+    case("far disc", lambda d: d["targets"][0]["discs"][2].__setitem__(0, 1e307))
     return cases
 
 
