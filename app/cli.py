@@ -6,8 +6,18 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    from app.settings import Settings
+
+
+def ws_message_limit(settings: Settings) -> int:
+    """The largest WebSocket message the server reads: four frames' worth, at least the
+    web server's own default of 16 MiB. Larger messages close the connection (1009)."""
+    return max(16 * 1024 * 1024, 4 * settings.max_frame_bytes)
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -24,6 +34,9 @@ def _serve(args: argparse.Namespace) -> int:
         ws="websockets-sansio",  # ("websockets", the legacy implementation, is deprecated)
         # Frames are JPEGs: deflate cannot shrink them and costs ~10 ms per 200 KB frame.
         ws_per_message_deflate=False,
+        # The transport's bound on one message; frames under it but over max_frame_bytes
+        # get the frame_too_large error and the connection stays open.
+        ws_max_size=ws_message_limit(settings),
         proxy_headers=True,
     )
     return 0

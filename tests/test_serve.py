@@ -86,3 +86,33 @@ def test_track_refused_for_its_key_says_why_with_close_code_1008(tmp_path: Path,
             except ConnectionClosed as closed:
                 assert closed.rcvd is not None and closed.rcvd.code == 1008
                 assert "API key" in closed.rcvd.reason
+
+
+def test_oversized_track_frames_get_frame_too_large_until_the_transport_limit(tmp_path: Path) -> None:
+    # Between max_frame_bytes (4 MiB) and the transport's limit (16 MiB here) a frame is
+    # answered with frame_too_large and the connection stays; beyond it the connection is
+    # closed (1009).
+    import json
+
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    from tests.conftest import example_map
+
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        env = httpx.post(f"{server.url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
+        assert httpx.put(f"{server.url}/environments/{env['id']}/map", json=example_map()).status_code == 200
+        url = server.url.replace("http://", "ws://") + f"/track?environment_id={env['id']}"
+        with connect(url, open_timeout=5, max_size=None) as ws:
+            assert json.loads(ws.recv(timeout=5))["type"] == "hello"
+            ws.send(b"\xff\xd8\xff" + bytes(5 * 1024 * 1024))
+            reply = json.loads(ws.recv(timeout=10))
+            assert reply["type"] == "error" and reply["code"] == "frame_too_large"
+            try:
+                ws.send(b"\xff\xd8\xff" + bytes(17 * 1024 * 1024))
+                ws.recv(timeout=10)
+                raise AssertionError("a 17 MiB message was read")
+            except ConnectionClosed as closed:
+                # The server closes with 1009 while the client may still be sending: then
+                # the close frame can be lost in the reset, but never another code.
+                assert closed.rcvd is None or closed.rcvd.code == 1009, closed.rcvd
