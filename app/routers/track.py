@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from starlette.concurrency import run_in_threadpool
 
-from app.deps import RowId, SettingsDep, TrackStreamsDep, TrackingDep
+from app.deps import RowId, SettingsDep, TrackingDep, TrackStreamsDep
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
 from app.services.streaming import ClientGone, Refused
