@@ -130,13 +130,36 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             height, width = struct.unpack(">HH", data[i + 5 : i + 9])
             if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
                 raise ImageError("corrupt", "JPEG is truncated (no end-of-image marker)")
-            # 0xFF is stuffed as FF 00 inside entropy-coded data, so every FF DA is a scan.
-            scans = data.count(b"\xff\xda", i)
+            scans = _jpeg_scans(data, i)
             if scans > MAX_JPEG_SCANS:
                 raise ImageError("corrupt", f"JPEG has {scans} scans; at most {MAX_JPEG_SCANS} are accepted")
             return ImageHeader("jpeg", int(width), int(height))
         i += 2 + length
     raise ImageError("corrupt", "JPEG header is truncated (no frame header found)")
+
+
+def _jpeg_scans(data: bytes, i: int) -> int:
+    """The scans of a JPEG whose segments are walked from byte `i`: up to the first scan
+    segment by segment (a comment or an APPn block may hold any bytes, FF DA included),
+    then every FF DA, since 0xFF is stuffed as FF 00 inside entropy-coded data."""
+    n = len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            raise ImageError("corrupt", f"JPEG marker expected at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:
+            i += 1
+            continue
+        if marker == 0xDA:
+            return 1 + data.count(b"\xff\xda", i + 2)
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if length < 2:
+            raise ImageError("corrupt", "JPEG segment with an impossible length")
+        i += 2 + length
+    return 0
 
 
 def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarray:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from app.core.imagecodec import ImageError, decode_gray, read_header
+from app.core.imagecodec import MAX_JPEG_SCANS, ImageError, decode_gray, read_header
 
 
 def _encode(image: np.ndarray, ext: str) -> bytes:
@@ -95,3 +95,19 @@ def test_exif_orientation_is_ignored() -> None:
     decoded = decode_gray(tagged, max_pixels=10**6)
     assert decoded.shape == (32, 64)
     assert decoded[:, :6].mean() > 200 and decoded[:, 12:].mean() < 50
+
+
+def test_scan_markers_inside_a_comment_are_no_scans() -> None:
+    # A comment (or an APPn block) may hold any bytes: FF DA there is no scan, and the
+    # image decodes. Counted blindly, 100 of them made a baseline JPEG "101 scans".
+    image = (np.arange(64 * 48, dtype=np.uint32).reshape(48, 64) % 251).astype(np.uint8)
+    data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    sos = data.index(b"\xff\xda")
+    payload = b"\xff\xda" * 100
+    comment = b"\xff\xfe" + struct.pack(">H", len(payload) + 2) + payload
+    patched = data[:sos] + comment + data[sos:]
+    np.testing.assert_array_equal(decode_gray(patched, 10**6), decode_gray(data, 10**6))
+    # while a file of many real scans is still refused
+    many = data[:-2] + data[sos:-2] * (MAX_JPEG_SCANS + 1) + b"\xff\xd9"
+    with pytest.raises(ImageError, match="scans"):
+        decode_gray(many, 10**6)
