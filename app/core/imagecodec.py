@@ -12,6 +12,7 @@ scans (each scan is one more pass over the whole image: 125 kB took 20 s).
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -110,22 +111,9 @@ def _png_header(data: bytes) -> ImageHeader:
 
 
 def _jpeg_header(data: bytes) -> ImageHeader:
-    i, n = 2, len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            raise ImageError("corrupt", f"JPEG marker expected at byte {i}")
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            i += 2
-            continue
-        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
-        if length < 2:
-            raise ImageError("corrupt", "JPEG segment with an impossible length")
+    for marker, i, _ in _jpeg_segments(data, 2):
         if marker in _SOF_MARKERS:
-            if i + 9 > n:
+            if i + 9 > len(data):
                 break
             height, width = struct.unpack(">HH", data[i + 5 : i + 9])
             if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
@@ -134,31 +122,38 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             if scans > MAX_JPEG_SCANS:
                 raise ImageError("corrupt", f"JPEG has {scans} scans; at most {MAX_JPEG_SCANS} are accepted")
             return ImageHeader("jpeg", int(width), int(height))
-        i += 2 + length
     raise ImageError("corrupt", "JPEG header is truncated (no frame header found)")
 
 
-def _jpeg_scans(data: bytes, i: int) -> int:
-    """The scans of a JPEG whose segments are walked from byte `i`: up to the first scan
-    segment by segment (a comment or an APPn block may hold any bytes, FF DA included),
-    then every FF DA, since 0xFF is stuffed as FF 00 inside entropy-coded data."""
+def _jpeg_segments(data: bytes, i: int) -> Iterator[tuple[int, int, int]]:
+    """``(marker, position, length)`` of each JPEG marker from byte `i` on (length 0 for
+    the markers that have none), while a segment header fits in the data; each segment
+    is skipped whole, so a comment or an APPn block may hold any bytes."""
     n = len(data)
     while i + 4 <= n:
         if data[i] != 0xFF:
             raise ImageError("corrupt", f"JPEG marker expected at byte {i}")
         marker = data[i + 1]
-        if marker == 0xFF:
+        if marker == 0xFF:  # fill byte
             i += 1
             continue
-        if marker == 0xDA:
-            return 1 + data.count(b"\xff\xda", i + 2)
         if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            yield marker, i, 0
             i += 2
             continue
         (length,) = struct.unpack(">H", data[i + 2 : i + 4])
         if length < 2:
             raise ImageError("corrupt", "JPEG segment with an impossible length")
+        yield marker, i, length
         i += 2 + length
+
+
+def _jpeg_scans(data: bytes, i: int) -> int:
+    """The scans of a JPEG from byte `i` on: segment by segment up to the first scan, then
+    every FF DA, since 0xFF is stuffed as FF 00 inside entropy-coded data."""
+    for marker, j, _ in _jpeg_segments(data, i):
+        if marker == 0xDA:
+            return 1 + data.count(b"\xff\xda", j + 2)
     return 0
 
 
