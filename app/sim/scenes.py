@@ -28,7 +28,7 @@ from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family,
 from app.sim import degrade
 from app.sim.lighting import Lighting, shade
 from app.sim.render import TexturedQuad, render
-from app.sim.surfaces import Surfaces, cast_surfaces
+from app.sim.surfaces import Surfaces, cast_surfaces, quad_hits
 from app.sim.video import PhoneVideo, record
 from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average
 
@@ -1004,13 +1004,8 @@ def _hidden(eye: np.ndarray, points: np.ndarray, boards: Sequence[np.ndarray]) -
     length = np.linalg.norm(d, axis=1)
     hidden = np.zeros(len(points), bool)
     for corners in boards:
-        origin, ex, ey = corners[0], corners[1] - corners[0], corners[3] - corners[0]
-        n = np.cross(ex, ey)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = float((origin - eye) @ n) / (d @ n)  # along d: 1 at the point
-        hit = eye + t[:, None] * d - origin
-        a, b = hit @ ex / (ex @ ex), hit @ ey / (ey @ ey)
-        hidden |= (t > 0) & (t * length < length - _HIDDEN_MARGIN_M) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+        t, meets = quad_hits(eye, d, corners)  # t along d: 1 at the point
+        hidden |= meets & (t * length < length - _HIDDEN_MARGIN_M)
     return hidden
 
 

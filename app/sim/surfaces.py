@@ -20,7 +20,7 @@ import numpy as np
 
 from app.core.geometry import Camera, Pose
 
-__all__ = ["Surfaces", "cast_surfaces"]
+__all__ = ["Surfaces", "cast_surfaces", "quad_hits"]
 
 #: The near plane a surface is clipped to before its projection bounds the pixels it
 #: is cast over, metres along the camera's axis.
@@ -69,42 +69,63 @@ def cast_surfaces(camera: Camera, pose: Pose, surfaces: Sequence[np.ndarray], ca
     Surfaces
     """
     ideal_u, ideal_v = camera.distortion_maps()  # each pixel's ideal position, cached with the camera
-    x = (ideal_u - camera.cx) / camera.fx  # camera-frame rays (x, y, 1)
+    x = (ideal_u - camera.cx) / camera.fx
     y = (ideal_v - camera.cy) / camera.fy
+    shape = (camera.height, camera.width)
+    rays = np.stack([x, y, np.ones(shape)], axis=-1)  # camera frame, 1 along the optical axis
     columns = (np.nanmin(x, axis=0), np.nanmax(x, axis=0))  # each column's extent, rising with u
     rows = (np.nanmin(y, axis=1), np.nanmax(y, axis=1))
-    shape = (camera.height, camera.width)
     depth = np.full(shape, np.inf)
     owner = np.full(shape, -1, np.intp)
     quads = [np.asarray(c, np.float64) for c in (*surfaces, *cards)]
-    for index, corners in enumerate(quads):
-        c = pose.transform(corners)  # camera frame
-        block = _block(c, columns, rows)
-        if block is None:
-            continue
-        v0, v1, u0, u1 = block
-        bx, by = x[v0:v1, u0:u1], y[v0:v1, u0:u1]
-        origin, ex, ey = c[0], c[1] - c[0], c[3] - c[0]
-        n = np.cross(ex, ey)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = float(n @ origin) / (n[0] * bx + n[1] * by + n[2])  # along the ray: its depth
-        hx, hy, hz = t * bx - origin[0], t * by - origin[1], t - origin[2]
-        a = (hx * ex[0] + hy * ex[1] + hz * ex[2]) / float(ex @ ex)
-        b = (hx * ey[0] + hy * ey[1] + hz * ey[2]) / float(ey @ ey)
-        seen = depth[v0:v1, u0:u1]
-        closer = (t > _NEAR_M) & (t < seen) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
-        seen[closer] = t[closer]
-        owner[v0:v1, u0:u1][closer] = index
     normals = np.full((len(quads) + 1, 3), np.nan)  # the last row: nothing seen (owner -1)
     eye = pose.position
     for index, corners in enumerate(quads):
         n = np.cross(corners[1] - corners[0], corners[3] - corners[0])
         n /= np.linalg.norm(n)
         normals[index] = n if float((eye - corners[0]) @ n) > 0 else -n
+        c = pose.transform(corners)  # camera frame
+        block = _block(c, columns, rows)
+        if block is None:
+            continue
+        v0, v1, u0, u1 = block
+        t, meets = quad_hits(np.zeros(3), rays[v0:v1, u0:u1], c)  # t along a ray: its depth
+        seen = depth[v0:v1, u0:u1]
+        closer = meets & (t > _NEAR_M) & (t < seen)
+        seen[closer] = t[closer]
+        owner[v0:v1, u0:u1][closer] = index
     found = owner >= 0
-    rays = np.stack([x, y, np.ones(shape)], axis=-1) @ pose.R  # map frame, 1 along the optical axis
-    points = np.where(found[..., None], eye + np.where(found, depth, 0.0)[..., None] * rays, np.nan)
+    points = np.where(found[..., None], eye + np.where(found, depth, 0.0)[..., None] * (rays @ pose.R), np.nan)
     return Surfaces(points=points, normals=normals[owner], depth=depth, card=owner >= len(surfaces))
+
+
+def quad_hits(origin: np.ndarray, rays: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays meet a planar parallelogram.
+
+    Parameters
+    ----------
+    origin : (3,) ndarray
+        Where the rays start.
+    rays : (..., 3) ndarray
+        Their directions (any lengths).
+    corners : (4, 3) ndarray
+        The parallelogram's corners in order around it, in the rays' frame.
+
+    Returns
+    -------
+    t : (...) ndarray
+        How far along each ray its line meets the parallelogram's plane, in the ray's
+        lengths (NaN or inf for a ray along the plane).
+    meets : (...) ndarray of bool
+        The ray meets the parallelogram in front of `origin` (t > 0), within its edges.
+    """
+    base, ex, ey = corners[0], corners[1] - corners[0], corners[3] - corners[0]
+    n = np.cross(ex, ey)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = float((base - origin) @ n) / (rays @ n)
+        hit = origin + t[..., None] * rays - base
+        a, b = hit @ ex / float(ex @ ex), hit @ ey / float(ey @ ey)
+    return t, (t > 0) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
 
 
 def _block(corners: np.ndarray, columns: tuple[np.ndarray, np.ndarray], rows: tuple[np.ndarray, np.ndarray]
