@@ -173,12 +173,9 @@ class Detector:
             mosaic, places = _pack(gray, boxes)
             rows, _, _ = detect_windows(mosaic, self._scanning)
             candidates = _unpack(rows, boxes, places, width, height)
-            if self.thorough:
-                blobs = blob_candidates(gray, GRAZING_BLOBS)
-                inside = np.zeros(len(blobs), bool)
-                for x0, y0, x1, y1 in boxes:
-                    inside |= (blobs[:, 0] >= x0) & (blobs[:, 0] < x1) & (blobs[:, 1] >= y0) & (blobs[:, 1] < y1)
-                candidates = _with_blobs(candidates, blobs[inside])
+            if self.thorough:  # the blobs of the same mosaic, back in the frame the same way
+                blobs = blob_candidates(mosaic, GRAZING_BLOBS).astype(np.float32)
+                candidates = _with_blobs(candidates, _unpack(blobs, boxes, places, width, height))
         found = time.perf_counter()
         stages: dict[str, float] = {}
         targets = assemble_targets(gray, candidates, self.family, timing=stages)

@@ -307,3 +307,21 @@ def test_mosaic_places_crops_on_the_8_px_grid_without_overlap() -> None:
         taken[py:py + y1 - y0, px:px + x1 - x0] += 1
     assert taken.max() == 1
     assert mosaic.size < 1.5 * sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes)
+
+
+def test_the_thorough_detector_in_regions_finds_what_its_full_scan_finds(room, detector: Detector) -> None:  # type: ignore[no-untyped-def]
+    # The survey's detector adds dark blobs to the learned candidates: in regions it takes
+    # them from the same mosaic of crops, back in frame pixels and inside the regions.
+    thorough = dataclasses.replace(detector, thorough=True)
+    _, poses, picked, images, targets = room
+    checked = 0
+    for i, image in zip(picked, images, strict=True):
+        regions = R.predict_regions(targets, CAMERA, poses[i - 1], 1, poses[i - 2], 1)
+        if regions is None:
+            continue
+        full, part = thorough.detect(image), thorough.detect(image, regions)
+        assert {t.id for t in part.targets} == {t.id for t in full.targets}, i
+        for u, v, _, _ in part.candidates:
+            assert any(r.x0 - 0.5 <= u <= r.x1 - 0.5 and r.y0 - 0.5 <= v <= r.y1 - 0.5 for r in regions)
+        checked += 1
+    assert checked >= 10
