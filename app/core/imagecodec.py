@@ -3,10 +3,13 @@
 A small file can declare an enormous image (a 631-byte JPEG can claim 30000x30000 and
 make a decoder allocate gigabytes), so the size is read from the header and checked
 before anything is decoded. Truncated files are refused rather than decoded into a
-half-grey frame. Two more cheap-file, expensive-decode tricks are refused from the
-structure alone: a PNG chunk that declares more bytes than the file holds (libpng spends
-seconds per gigabyte declared before failing) and a progressive JPEG with thousands of
-scans (each scan is one more pass over the whole image: 125 kB took 20 s).
+half-grey frame: JPEGs are decoded by libjpeg-turbo through simplejpeg, which reports
+the decoder's warnings (OpenCV swallows them, so that a file cut short and given an
+end-of-image marker decodes into grey rows without a word). Two more cheap-file,
+expensive-decode tricks are refused from the structure alone: a PNG chunk that declares
+more bytes than the file holds (libpng spends seconds per gigabyte declared before
+failing) and a progressive JPEG with thousands of scans (each scan is one more pass over
+the whole image: 125 kB took 20 s).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import simplejpeg
 
 __all__ = ["JPEG_MAGIC", "MAX_JPEG_SCANS", "PNG_MAGIC", "ImageError", "ImageHeader", "decode_gray", "read_header"]
 
@@ -27,6 +31,13 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 MAX_JPEG_SCANS = 64
 # Start-of-frame markers carry the image size (all SOFn except DHT, JPG and DAC).
 _SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+# Those of progressive JPEGs: the decoder holds every coefficient of the image at once.
+_PROGRESSIVE_SOF = {0xC2, 0xC6, 0xCA, 0xCE}
+# Channels of each PNG colour type (a palette is decoded to BGR).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+# libjpeg's warnings about bytes a file has to spare, not about missing ones: some
+# cameras' encoders write them, and the image is whole.
+_HARMLESS_JPEG_WARNINGS = ("extraneous bytes before marker",)
 
 
 class ImageError(ValueError):
@@ -55,11 +66,32 @@ class ImageHeader:
         "jpeg" or "png".
     width, height : int
         Declared size, pixels.
+    channels : int
+        Colour components (JPEG) or decoded channels (PNG).
+    sample_bytes : int
+        Bytes per sample once decoded: 1, or 2 for 16-bit PNGs and 12-bit JPEGs.
+    progressive : bool
+        A progressive JPEG (decoded from whole-image coefficient buffers).
     """
 
     format: str  # "jpeg" or "png"
     width: int
     height: int
+    channels: int = 1
+    sample_bytes: int = 1
+    progressive: bool = False
+
+    @property
+    def decode_bytes(self) -> int:
+        """The most memory decoding this image to greyscale holds at once, bytes (an
+        upper bound: the decoder's output and working buffers, and the conversions)."""
+        pixels = self.width * self.height
+        if self.format == "jpeg":
+            # 16-bit coefficients of every component, unless decoded a band at a time.
+            coefficients = 2 * self.channels * pixels if self.progressive else 0
+            return pixels + coefficients
+        # The decoded image, a converted copy of it, and the grey result.
+        return 2 * pixels * self.channels * self.sample_bytes + pixels
 
 
 def read_header(data: bytes) -> ImageHeader:
@@ -96,6 +128,7 @@ def _png_header(data: bytes) -> ImageHeader:
     if len(data) < 33 or data[12:16] != b"IHDR":
         raise ImageError("corrupt", "PNG header is truncated or has no IHDR chunk")
     width, height = struct.unpack(">II", data[16:24])
+    depth, colour = data[24], data[25]
     # Walk the chunks: each must fit in the file, and the last one is IEND.
     i, n = 8, len(data)
     while i + 12 <= n:
@@ -105,7 +138,8 @@ def _png_header(data: bytes) -> ImageHeader:
             raise ImageError("corrupt", f"PNG chunk {kind!r} at byte {i} declares {length} bytes; "
                              f"the file has {max(n - i - 12, 0)} left (truncated or corrupt)")
         if data[i + 4 : i + 8] == b"IEND":
-            return ImageHeader("png", int(width), int(height))
+            return ImageHeader("png", int(width), int(height), channels=_PNG_CHANNELS.get(colour, 4),
+                               sample_bytes=2 if depth == 16 else 1)
         i += 12 + length
     raise ImageError("corrupt", "PNG is truncated (no IEND chunk at the end)")
 
@@ -116,12 +150,14 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             if i + 9 > len(data):
                 break
             height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+            precision, components = data[i + 4], data[i + 9] if i + 9 < len(data) else 1
             if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
                 raise ImageError("corrupt", "JPEG is truncated (no end-of-image marker)")
             scans = _jpeg_scans(data, i)
             if scans > MAX_JPEG_SCANS:
                 raise ImageError("corrupt", f"JPEG has {scans} scans; at most {MAX_JPEG_SCANS} are accepted")
-            return ImageHeader("jpeg", int(width), int(height))
+            return ImageHeader("jpeg", int(width), int(height), channels=max(int(components), 1),
+                               sample_bytes=2 if precision > 8 else 1, progressive=marker in _PROGRESSIVE_SOF)
     raise ImageError("corrupt", "JPEG header is truncated (no frame header found)")
 
 
@@ -190,13 +226,9 @@ def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarr
             f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
         )
     if header.format == "jpeg":
-        # Luma straight from the decoder: a colour JPEG's chroma is never upsampled or
-        # converted (0.6 instead of 0.9 ms at 640x480). EXIF orientation is ignored, as
-        # for every format: pixels must stay where the camera's intrinsics put them.
-        flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
-    else:
-        flags = cv2.IMREAD_UNCHANGED  # 16-bit and 4-channel PNGs are converted below
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        return _decode_jpeg_gray(data, header)
+    # 16-bit and 4-channel PNGs are converted below.
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise ImageError("corrupt", f"the {header.format.upper()} data could not be decoded")
     if image.shape[0] != header.height or image.shape[1] != header.width:
@@ -211,3 +243,21 @@ def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarr
             raise ImageError("unsupported", f"{image.shape[2]}-channel images are not supported")
         image = cv2.cvtColor(image, code)
     return np.ascontiguousarray(image)
+
+
+def _decode_jpeg_gray(data: bytes, header: ImageHeader) -> np.ndarray:
+    """Luma straight from the decoder: a colour JPEG's chroma is never upsampled or
+    converted (0.6 instead of 0.9 ms at 640x480). EXIF orientation is ignored, as for
+    every format: pixels must stay where the camera's intrinsics put them. A warning of
+    the decoder (data cut short, a corrupt segment) refuses the file."""
+    try:
+        image = simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True)
+    except ValueError as exc:
+        message = str(exc)
+        if not any(harmless in message for harmless in _HARMLESS_JPEG_WARNINGS):
+            kind = "unsupported" if "Unsupported color conversion" in message else "corrupt"
+            raise ImageError(kind, f"the JPEG could not be decoded: {message}") from None
+        image = simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=False)
+    if image.shape[0] != header.height or image.shape[1] != header.width:
+        raise ImageError("corrupt", "decoded size differs from the header")
+    return np.ascontiguousarray(image[:, :, 0])

@@ -111,3 +111,44 @@ def test_scan_markers_inside_a_comment_are_no_scans() -> None:
     many = data[:-2] + data[sos:-2] * (MAX_JPEG_SCANS + 1) + b"\xff\xd9"
     with pytest.raises(ImageError, match="scans"):
         decode_gray(many, 10**6)
+
+
+def _photo_jpeg(progressive: bool = False) -> bytes:
+    rng = np.random.default_rng(1)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (0, 0), 2)
+    params = [cv2.IMWRITE_JPEG_QUALITY, 90] + ([cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if progressive else [])
+    return cv2.imencode(".jpg", image, params)[1].tobytes()
+
+
+@pytest.mark.parametrize("progressive", [False, True])
+def test_a_jpeg_cut_short_and_given_an_end_marker_is_refused(progressive: bool) -> None:
+    # The decoder would fill the missing rows with grey and say so only in a warning.
+    data = _photo_jpeg(progressive)
+    cut = data[: len(data) // 2] + b"\xff\xd9"
+    with pytest.raises(ImageError, match="premature end") as refused:
+        decode_gray(cut, 10**6)
+    assert refused.value.kind == "corrupt"
+
+
+def test_spare_bytes_before_the_end_marker_are_harmless() -> None:
+    data = _photo_jpeg()
+    padded = data[:-2] + b"\x55" * 7 + b"\xff\xd9"
+    np.testing.assert_array_equal(decode_gray(padded, 10**6), decode_gray(data, 10**6))
+
+
+@pytest.mark.parametrize("progressive", [False, True])
+def test_jpeg_luma_is_what_opencv_decodes(progressive: bool) -> None:
+    data = _photo_jpeg(progressive)
+    expected = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(decode_gray(data, 10**6), expected)
+
+
+def test_the_header_says_what_decoding_will_hold() -> None:
+    baseline, progressive = read_header(_photo_jpeg()), read_header(_photo_jpeg(progressive=True))
+    assert (baseline.channels, baseline.progressive) == (3, False)
+    assert (progressive.channels, progressive.progressive) == (3, True)
+    assert baseline.decode_bytes == 320 * 240  # a band at a time into the grey result
+    assert progressive.decode_bytes == 320 * 240 * (1 + 2 * 3)  # every coefficient at once
+    rgba16 = read_header(_encode(np.zeros((30, 40, 4), np.uint16), ".png"))
+    assert (rgba16.channels, rgba16.sample_bytes) == (4, 2)
+    assert rgba16.decode_bytes == 2 * 30 * 40 * 4 * 2 + 30 * 40
