@@ -16,6 +16,7 @@ from starlette.requests import HTTPConnection
 
 from app.services import keys
 from app.services.detection import DetectorCache
+from app.services.images import MemoryBudget
 from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
@@ -48,6 +49,14 @@ def get_jobs(connection: HTTPConnection) -> JobRunner:
     return connection.app.state.jobs
 
 
+def get_image_memory(connection: HTTPConnection) -> MemoryBudget:
+    return connection.app.state.image_memory
+
+
+def get_image_threads(connection: HTTPConnection) -> anyio.CapacityLimiter:
+    return connection.app.state.image_threads
+
+
 def get_tracking(connection: HTTPConnection) -> TrackingService:
     return connection.app.state.tracking
 
@@ -77,6 +86,9 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 DetectorsDep = Annotated[DetectorCache, Depends(get_detectors)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
 TrackingDep = Annotated[TrackingService, Depends(get_tracking)]
+ImageMemoryDep = Annotated[MemoryBudget, Depends(get_image_memory)]
+#: The threads of /detect and /locate (apart from /track's).
+ImageThreadsDep = Annotated[anyio.CapacityLimiter, Depends(get_image_threads)]
 TrackStreamsDep = Annotated[TrackStreams, Depends(get_track_streams)]
 
 

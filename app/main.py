@@ -26,6 +26,7 @@ from app.routers import detect, environments, health, jobs, keys, markers, surve
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
+from app.services.images import MemoryBudget
 from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
@@ -56,7 +57,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.sessionmaker = sessions
     app.state.jobs = runner
     app.state.detectors = DetectorCache()
-    app.state.tracking = TrackingService(detectors=app.state.detectors, sessions=sessions, settings=settings)
+    app.state.image_memory = MemoryBudget(settings.image_memory_bytes)
+    app.state.image_threads = anyio.CapacityLimiter(settings.image_threads)
+    app.state.tracking = TrackingService(detectors=app.state.detectors, sessions=sessions, settings=settings,
+                                         memory=app.state.image_memory)
     # Frames of all clients share a few worker threads (OpenCV releases the GIL).
     app.state.track_streams = TrackStreams(app.state.tracking, settings=settings,
                                            limiter=anyio.CapacityLimiter(settings.track_threads))

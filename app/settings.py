@@ -49,6 +49,13 @@ class Settings(BaseSettings):
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
     max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
+    image_threads: int = Field(1, ge=1, le=64, description=(
+        "Threads processing /detect and /locate images, apart from the tracking frames' threads: those "
+        "requests queue for them, so that a burst of them cannot take the cores /track streams need."))
+    image_memory_bytes: int = Field(1024 * 1024 * 1024, ge=64 * 1024 * 1024, description=(
+        "Memory the client images being decoded and detected may hold at once, all routes together (each "
+        "image's cost is read from its header): an image that alone needs more is refused (413), others "
+        "wait for room."))
     compute_threads: int = Field(1, ge=1, le=64, description=(
         "Threads one frame's detection and pose may use inside OpenCV and BLAS. Frames of "
         "different clients already run in parallel (track_threads); 1 keeps idle BLAS "

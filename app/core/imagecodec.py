@@ -22,7 +22,8 @@ import cv2
 import numpy as np
 import simplejpeg
 
-__all__ = ["JPEG_MAGIC", "MAX_JPEG_SCANS", "PNG_MAGIC", "ImageError", "ImageHeader", "decode_gray", "read_header"]
+__all__ = ["JPEG_MAGIC", "MAX_JPEG_SCANS", "PNG_MAGIC", "ImageError", "ImageHeader", "check_size", "decode_gray",
+           "read_header"]
 
 JPEG_MAGIC = b"\xff\xd8\xff"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -193,7 +194,25 @@ def _jpeg_scans(data: bytes, i: int) -> int:
     return 0
 
 
-def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarray:
+def check_size(header: ImageHeader, max_pixels: int, max_side: int = 30000) -> None:
+    """Refuse a declared size of zero or over the limits.
+
+    Raises
+    ------
+    ImageError
+        "empty" or "too_large".
+    """
+    if header.width <= 0 or header.height <= 0:
+        raise ImageError("empty", f"the image declares a zero size ({header.width}x{header.height})")
+    if header.width > max_side or header.height > max_side or header.width * header.height > max_pixels:
+        raise ImageError(
+            "too_large",
+            f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
+        )
+
+
+def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000, header: ImageHeader | None = None
+                ) -> np.ndarray:
     """Decode a JPEG or PNG to 8-bit greyscale.
 
     Greyscale, colour, 4-channel and 16-bit images are accepted and converted; EXIF
@@ -207,6 +226,8 @@ def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarr
         Largest width * height accepted, checked on the header before decoding.
     max_side : int, optional
         Largest width or height accepted.
+    header : ImageHeader, optional
+        `read_header` of `data`, when the caller has read it already.
 
     Returns
     -------
@@ -217,14 +238,8 @@ def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000) -> np.ndarr
     ImageError
         For anything else, and for images over the limits (before decoding).
     """
-    header = read_header(data)
-    if header.width <= 0 or header.height <= 0:
-        raise ImageError("empty", f"the image declares a zero size ({header.width}x{header.height})")
-    if header.width > max_side or header.height > max_side or header.width * header.height > max_pixels:
-        raise ImageError(
-            "too_large",
-            f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
-        )
+    header = header or read_header(data)
+    check_size(header, max_pixels, max_side)
     if header.format == "jpeg":
         return _decode_jpeg_gray(data, header)
     # 16-bit and 4-channel PNGs are converted below.

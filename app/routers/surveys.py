@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
-from app.deps import JobsDep, RowId, SessionDep, SettingsDep
+from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
 from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
 from app.services import alignments, surveys
 from app.settings import MAX_SURVEY_FILES
@@ -29,6 +29,7 @@ def start_survey(
     session: SessionDep,
     settings: SettingsDep,
     runner: JobsDep,
+    memory: ImageMemoryDep,
     video: Annotated[UploadFile | None, File(description="Calibration video: MP4, MOV or AVI.")] = None,
     images: Annotated[list[UploadFile] | None, File(description="Or: JPEG/PNG frames, in order.")] = None,
     marker_size_m: Annotated[float | None, Form(description="Printed card side; default: the environment's.")] = None,
@@ -44,7 +45,7 @@ def start_survey(
     position of every disc. Returns the job (202, ``Location: /jobs/{id}``); on success
     it replaces the environment's map in one transaction."""
     job = surveys.submit_survey(
-        session, runner, settings, environment_id,
+        session, runner, settings, memory, environment_id,
         video=video.file if video is not None else None,
         images=[upload.file for upload in images or []],
         marker_size_m=marker_size_m, intrinsics=intrinsics, max_frames=max_frames, feature_tracks=feature_tracks,

@@ -5,10 +5,12 @@ from __future__ import annotations
 import contextlib
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
-from starlette.concurrency import run_in_threadpool
+from functools import partial
 
-from app.deps import RowId, SettingsDep, TrackingDep, TrackStreamsDep
+import anyio
+from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
+
+from app.deps import ImageThreadsDep, RowId, SettingsDep, TrackingDep, TrackStreamsDep
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
 from app.services.streaming import ClientGone, Refused
@@ -20,13 +22,15 @@ router = APIRouter(tags=["tracking"])
     "/environments/{environment_id}/locate",
     response_model=LocateResponse,
     openapi_extra=IMAGE_BODY_DOC,
-    responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
+    responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem},
+               503: {"model": Problem}},
 )
 async def locate(
     environment_id: RowId,
     request: Request,
     settings: SettingsDep,
     tracking: TrackingDep,
+    threads: ImageThreadsDep,
     method: Annotated[str, Query(pattern="^(nonlinear|posit|mean|single)$")] = "nonlinear",
     estimate_focal: bool = False,
 ) -> LocateResponse:
@@ -34,7 +38,7 @@ async def locate(
     in ``pose_error`` when the visible targets do not determine it)."""
     data = await read_image_body(request, settings.max_image_bytes)
     config = TrackConfig(method=method, estimate_focal=estimate_focal)  # type: ignore[arg-type]
-    return await run_in_threadpool(tracking.locate, environment_id, data, config)
+    return await anyio.to_thread.run_sync(partial(tracking.locate, environment_id, data, config), limiter=threads)
 
 
 @router.websocket("/track")

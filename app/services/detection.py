@@ -53,15 +53,15 @@ def to_response(detection: Detection, width: int, height: int, classifier_id: in
     )
 
 
-def detect(session: Session, cache: DetectorCache, settings: Settings, data: bytes, *, classifier_id: int | None,
-           family: str, with_candidates: bool) -> DetectResponse:
+def detect(session: Session, cache: DetectorCache, settings: Settings, memory: images.MemoryBudget, data: bytes, *,
+           classifier_id: int | None, family: str, with_candidates: bool) -> DetectResponse:
     """The targets in one client image (and every candidate disc, `with_candidates`)."""
     if family not in FAMILIES:
         raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
     if classifier_id is not None and not 0 <= classifier_id <= MAX_ID:
         raise NotFound(f"classifier {classifier_id} not found")
-    gray = images.decode(data, settings)
     chosen = classifier_id if classifier_id is not None else classifiers.default_id(session)
     detector = cache.get(session, chosen, family)
-    detection = detector.detect(gray)
-    return to_response(detection, gray.shape[1], gray.shape[0], chosen, with_candidates)
+    with images.decoded(data, settings, memory) as gray:
+        detection = detector.detect(gray)
+        return to_response(detection, gray.shape[1], gray.shape[0], chosen, with_candidates)

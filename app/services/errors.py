@@ -48,6 +48,12 @@ class TooMany(ServiceError):
     status_code = 429
 
 
+class Busy(ServiceError):
+    """The server is working at its capacity: the same request later may succeed."""
+
+    status_code = 503
+
+
 def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
     """The row of ``model`` with primary key ``key``, or NotFound("<what> <key> not found")."""
     row = None if isinstance(key, int) and not -MAX_ID - 1 <= key <= MAX_ID else session.get(model, key)

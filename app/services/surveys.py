@@ -148,6 +148,7 @@ def submit_survey(
     session: Session,
     runner: JobRunner,
     settings: Settings,
+    memory: images.MemoryBudget,
     environment_id: int,
     *,
     video: BinaryIO | None,
@@ -182,7 +183,7 @@ def submit_survey(
             info = probe_video(path, settings)
             video_path, video_frames, width, height = str(path), info.frames, info.width, info.height
         else:
-            width, height = _store_images(images, folder, settings, budget)
+            width, height = _store_images(images, folder, settings, budget, memory)
         if camera is not None and (camera.width, camera.height) != (width, height):
             # The same lens at another resolution keeps the image's shape; intrinsics of
             # another shape are for another camera (or mistyped), not to be stretched.
@@ -207,8 +208,8 @@ def submit_survey(
     return jobs.job_out(job)
 
 
-def _store_images(streams: Sequence[BinaryIO], folder: Path, settings: Settings, budget: list[int]
-                  ) -> tuple[int, int]:
+def _store_images(streams: Sequence[BinaryIO], folder: Path, settings: Settings, budget: list[int],
+                  memory: images.MemoryBudget) -> tuple[int, int]:
     """Store the uploaded images as ``image_NNNNN.png|jpg``, each decodable and all of
     one size; that (width, height)."""
     size = None
@@ -217,14 +218,15 @@ def _store_images(streams: Sequence[BinaryIO], folder: Path, settings: Settings,
         _save_stream(stream, path, settings.max_upload_bytes, budget)
         data = path.read_bytes()
         try:
-            gray = images.decode(data, settings)
+            with images.decoded(data, settings, memory, detect=False) as gray:
+                shape = gray.shape
         except ServiceError as exc:
             exc.detail = f"images[{index}]: {exc.detail}"
             raise
         if size is None:
-            size = gray.shape
-        elif gray.shape != size:
-            raise Invalid(f"images[{index}]: {gray.shape[1]}x{gray.shape[0]} differs from the first "
+            size = shape
+        elif shape != size:
+            raise Invalid(f"images[{index}]: {shape[1]}x{shape[0]} differs from the first "
                           f"image's {size[1]}x{size[0]}; one camera, one resolution")
         path.rename(path.with_suffix(".png" if data.startswith(PNG_MAGIC) else ".jpg"))
     assert size is not None

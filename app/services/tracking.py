@@ -179,10 +179,12 @@ class TrackingService:
     """Tracking for one application: each environment's context (map and detector),
     loaded once and shared by every client, reloaded when the stored map changes."""
 
-    def __init__(self, *, detectors: DetectorCache, sessions: sessionmaker[Session], settings: Settings) -> None:
+    def __init__(self, *, detectors: DetectorCache, sessions: sessionmaker[Session], settings: Settings,
+                 memory: images.MemoryBudget) -> None:
         self.detectors = detectors
         self.sessions = sessions
         self.settings = settings
+        self.memory = memory
         self._lock = threading.Lock()
         self._contexts: dict[int, TrackingContext] = {}
 
@@ -233,7 +235,13 @@ class TrackingService:
             config = stream.config
         assert isinstance(config, TrackConfig)
         start = time.perf_counter()
-        gray = images.decode(data, self.settings)
+        with images.decoded(data, self.settings, self.memory) as gray:
+            return self._locate_gray(context, gray, config, stream, start)
+
+    def _locate_gray(self, context: TrackingContext, gray: np.ndarray, config: TrackConfig,
+                     stream: StreamFrame | None, start: float) -> FrameResult:
+        """`locate_frame` once the frame is decoded (at `start`, perf_counter seconds,
+        decoding began)."""
         decoded = time.perf_counter()
         detector = self.detectors.get_loaded(context.detector_key)
         if detector is None:

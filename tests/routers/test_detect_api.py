@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+import time
 
 import cv2
 import numpy as np
@@ -113,3 +114,22 @@ def test_unknown_classifier_404_and_family_422(client: TestClient, frame: Frame)
     assert reply.status_code == 404
     reply = client.post("/detect?family=qr", content=data, headers={"content-type": "image/png"})
     assert reply.status_code == 422
+
+
+def test_an_image_whose_decoding_would_overrun_the_memory_budget_is_413_at_once(client: TestClient) -> None:
+    # 280 kB of PNG that decodes to 6000x6000 16-bit RGBA: 288 MB before the detector's
+    # own pyramid, seconds of work. Its header says so: refused before decoding.
+    data = _encode(np.zeros((6000, 6000, 4), np.uint16), ".png")
+    assert len(data) < 400_000
+    started = time.perf_counter()
+    reply = client.post("/detect", content=data, headers={"Content-Type": "image/png"})
+    assert reply.status_code == 413, reply.text
+    assert "memory" in reply.json()["detail"]
+    assert time.perf_counter() - started < 0.5
+
+
+def test_a_jpeg_cut_short_and_closed_with_an_end_marker_is_422(client: TestClient, frame: Frame) -> None:
+    data = _encode(frame[0], ".jpg")
+    reply = client.post("/detect", content=data[: len(data) // 3] + b"\xff\xd9",
+                        headers={"Content-Type": "image/jpeg"})
+    assert reply.status_code == 422 and "premature end" in reply.json()["detail"]
