@@ -23,6 +23,7 @@ from app.deps import authorize
 from app.middleware import BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
+from app.schemas import MAX_LISTED_ERRORS, error_summary
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
@@ -98,16 +99,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        # Which field and why; the offending input is not echoed (it may be huge, or a
-        # NaN that JSON cannot carry).
+        # Which field and why, for the first few; the offending input is not echoed (it
+        # may be huge, or a NaN that JSON cannot carry).
         errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
-        return JSONResponse({"detail": detail, "errors": errors}, status_code=422)
+        return JSONResponse({"detail": error_summary(errors), "errors": errors[:MAX_LISTED_ERRORS]},
+                            status_code=422)
 
     app.add_middleware(RequestObserver, metrics=app.state.metrics)
     # Outermost: a body over the limit is refused before any of it is read.
-    app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes,
-                       body_limit=settings.max_image_bytes + 1024 * 1024)
+    app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes, image_limit=settings.max_image_bytes,
+                       json_limit=settings.max_json_bytes)
 
     app.include_router(health.router)
     app.include_router(environments.router)

@@ -28,6 +28,10 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 #: Routes that take large uploads (survey videos, training image sets).
 UPLOAD_ROUTES = (re.compile(r"^/environments/\d+/survey$"), re.compile(r"^/classifiers/?$"))
+#: Routes that take one image.
+IMAGE_ROUTES = (re.compile(r"^/detect/?$"), re.compile(r"^/environments/\d+/locate/?$"))
+#: What multipart framing may add to an image.
+MULTIPART_FRAMING_BYTES = 64 * 1024
 
 
 def too_large(limit: int) -> HTTPException:
@@ -35,14 +39,22 @@ def too_large(limit: int) -> HTTPException:
 
 
 class BodyLimit:
-    def __init__(self, app: ASGIApp, upload_limit: int, body_limit: int) -> None:
+    """Uploads may be up to `upload_limit`, images up to `image_limit` (and their
+    multipart framing), every other body (JSON) up to `json_limit`."""
+
+    def __init__(self, app: ASGIApp, upload_limit: int, image_limit: int, json_limit: int) -> None:
         self.app = app
         self.upload_limit = upload_limit
-        self.body_limit = body_limit
+        self.image_limit = image_limit
+        self.json_limit = json_limit
 
     def limit_for(self, scope: Scope) -> int:
         path = scope.get("path", "")
-        return self.upload_limit if any(r.match(path) for r in UPLOAD_ROUTES) else self.body_limit
+        if any(r.match(path) for r in UPLOAD_ROUTES):
+            return self.upload_limit
+        if any(r.match(path) for r in IMAGE_ROUTES):
+            return self.image_limit + MULTIPART_FRAMING_BYTES
+        return self.json_limit
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

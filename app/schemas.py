@@ -4,12 +4,50 @@ configuration pages of the documentation are generated from it)."""
 
 from __future__ import annotations
 
+import json
 import unicodedata
 from datetime import UTC, datetime
 from enum import IntEnum, StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+
+#: Most keys a JSON object in a request may have: twice the fields of the largest request
+#: model (every unknown key would cost an error of its own in the reply).
+MAX_JSON_KEYS = 16
+#: Most targets a map may hold: more than any marker family has ids (282).
+MAX_MAP_TARGETS = 1000
+#: Most errors a validation reply lists (the count says how many there were).
+MAX_LISTED_ERRORS = 20
+
+
+def load_json(data: bytes | str) -> Any:
+    """Parse a request's JSON, refusing (ValueError) an object of more than
+    `MAX_JSON_KEYS` keys as soon as the parser has read it: such a body would make
+    validation build one error per key."""
+    return json.loads(data, object_pairs_hook=_bounded_object)
+
+
+def _bounded_object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    if len(pairs) > MAX_JSON_KEYS:
+        raise ValueError(f"an object has {len(pairs)} keys; at most {MAX_JSON_KEYS} are read")
+    return dict(pairs)
+
+
+def error_summary(errors: list[dict[str, Any]]) -> str:
+    """Validation errors as one line for a person: "field: why; ..." for the first
+    `MAX_LISTED_ERRORS`, then how many more (the input is never echoed)."""
+    shown = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors[:MAX_LISTED_ERRORS])
+    more = len(errors) - MAX_LISTED_ERRORS
+    return shown + (f"; and {more} more errors" if more > 0 else "")
+
 
 # JSON as Python parses it accepts NaN and Infinity; nothing stored may hold them.
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -163,7 +201,7 @@ class MapDocument(BaseModel):
     frame: Literal["survey", "world"]
     units: Literal["m"] = "m"
     camera: CameraModel
-    targets: list[MapTarget] = Field(max_length=100_000)
+    targets: list[MapTarget] = Field(max_length=MAX_MAP_TARGETS)
     rms_px: NonNegativeFinite | None = None
     survey_job_id: str | None = Field(None, max_length=32)
 
@@ -433,7 +471,7 @@ class AlignmentRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    points: list[AlignmentPoint] | None = Field(None, max_length=10_000)
+    points: list[AlignmentPoint] | None = Field(None, max_length=4 * MAX_MAP_TARGETS)
     origin_target_id: int | None = Field(
         None, ge=0, description="This target's centre becomes the origin, its plane z = 0, x along disc 0 -> 1."
     )

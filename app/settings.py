@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Largest survey upload.")
     max_image_bytes: int = Field(20 * 1024 * 1024, ge=1024, description=(
         "Largest image: a /detect or /locate body, a training image, a decoded frame."))
+    max_json_bytes: int = Field(1024 * 1024, ge=1024, description=(
+        "Largest JSON body (a map of every card of the largest family is about 0.1 MiB) and of any other "
+        "request that is not an upload or an image."))
     max_image_pixels: int = Field(40_000_000, ge=64 * 64, description="Largest width*height decoded.")
     max_frame_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest /track frame (one binary WebSocket message).")
     max_training_images: int = Field(200, ge=1, description="Most images in one training upload.")

@@ -179,3 +179,20 @@ def test_the_server_does_not_load_the_simulator(entry: str) -> None:
     code = f"import sys; {entry}; print(sorted(m for m in sys.modules if m.startswith(('app.sim', 'skimage'))))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_every_json_body_is_parsed_off_the_event_loop() -> None:
+    # FastAPI parses and validates a body on the event loop, where a large one holds up
+    # every other client; JsonBodyRoute does it in a worker thread.
+    from fastapi.routing import APIRoute
+
+    from app.main import create_app
+    from app.routers.json_bodies import JsonBodyRoute
+
+    def flattened(routes: list) -> list:  # included routers are nested
+        return [leaf for r in routes
+                for leaf in (flattened(r.original_router.routes) if hasattr(r, "original_router") else [r])]
+
+    routes = [r for r in flattened(create_app().routes) if isinstance(r, APIRoute) and r.body_field is not None]
+    assert len(routes) >= 5
+    assert [r.path for r in routes if not isinstance(r, JsonBodyRoute)] == []

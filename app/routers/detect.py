@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Annotated
-
 from functools import partial
+from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Query, Request
 
 from app.deps import DetectorsDep, ImageMemoryDep, ImageThreadsDep, SessionDep, SettingsDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import DetectResponse, Problem
 from app.services import detection
 
-router = APIRouter(tags=["detection"])
+router = APIRouter(tags=["detection"], route_class=JsonBodyRoute)
 
 
 @router.post(

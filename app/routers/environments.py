@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, Response, status
 
 from app.deps import RowId, SessionDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, Problem
 from app.services import environments
 
-router = APIRouter(prefix="/environments", tags=["environments"])
+router = APIRouter(prefix="/environments", tags=["environments"], route_class=JsonBodyRoute)
 _404 = {404: {"model": Problem, "description": "No such environment"}}
 
 

@@ -9,10 +9,11 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from app.db import current_revisions, head_revisions
 from app.deps import EngineDep, MetricsDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import Readiness
 from app.services.metrics import CONTENT_TYPE_LATEST
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=JsonBodyRoute)
 
 
 @router.get("/livez")

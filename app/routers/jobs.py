@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from app.deps import SessionDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import JobOut, Problem
 from app.services import jobs
 
-router = APIRouter(prefix="/jobs", tags=["jobs"])
+router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=JsonBodyRoute)
 _404 = {404: {"model": Problem, "description": "No such job"}}
 
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 
 from app.deps import RowId, SessionDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut, Problem
 from app.services import keys
 
-router = APIRouter(prefix="/keys", tags=["keys"])
+router = APIRouter(prefix="/keys", tags=["keys"], route_class=JsonBodyRoute)
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ApiKeyCreated)

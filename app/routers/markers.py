@@ -6,11 +6,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Response
 
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import MarkerCatalogue, MarkerLayoutOut, Problem
 from app.services import markers
 from app.services.marker_sheets import MAX_SIZE_MM, MIN_SIZE_MM
 
-router = APIRouter(prefix="/markers", tags=["markers"])
+router = APIRouter(prefix="/markers", tags=["markers"], route_class=JsonBodyRoute)
 
 Family = Annotated[str, Query(description="Code family, e.g. fido3x3 (default) or fido4x4.")]
 MarkerId = Annotated[int, Path(description="Marker id within the family (404 outside it).")]

@@ -7,11 +7,12 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
 from app.services import alignments, surveys
 from app.settings import MAX_SURVEY_FILES
 
-router = APIRouter(prefix="/environments", tags=["surveys"])
+router = APIRouter(prefix="/environments", tags=["surveys"], route_class=JsonBodyRoute)
 
 
 @router.post(

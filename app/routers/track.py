@@ -3,19 +3,19 @@
 from __future__ import annotations
 
 import contextlib
-from typing import Annotated
-
 from functools import partial
+from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
 from app.deps import ImageThreadsDep, RowId, SettingsDep, TrackingDep, TrackStreamsDep
+from app.routers.json_bodies import JsonBodyRoute
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
 from app.services.streaming import ClientGone, Refused
 
-router = APIRouter(tags=["tracking"])
+router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
 
 
 @router.post(

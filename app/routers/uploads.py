@@ -6,6 +6,8 @@ from __future__ import annotations
 from fastapi import HTTPException, Request, UploadFile, status
 from starlette.datastructures import UploadFile as StarletteUploadFile
 
+from app.middleware import MULTIPART_FRAMING_BYTES
+
 IMAGE_BODY_DOC = {
     "requestBody": {
         "required": True,
@@ -47,8 +49,7 @@ async def read_upload(upload: UploadFile, limit: int) -> bytes:
 async def read_image_body(request: Request, limit: int) -> bytes:
     """The image of a request: the raw body, or the `image` part of a multipart form."""
     content_type = request.headers.get("content-type", "")
-    # Multipart framing adds a little to the image itself.
-    check_declared_length(request, limit + 64 * 1024 if content_type.startswith("multipart/") else limit)
+    check_declared_length(request, limit + MULTIPART_FRAMING_BYTES if content_type.startswith("multipart/") else limit)
     if content_type.startswith("multipart/form-data"):
         form = await request.form(max_files=1, max_fields=8)
         part = form.get("image")

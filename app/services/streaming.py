@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import threading
 import time
@@ -30,6 +29,7 @@ from pydantic import ValidationError
 
 from app import logs
 from app.schemas import (
+    MAX_JSON_KEYS,
     TrackCloseCode,
     TrackConfig,
     TrackError,
@@ -39,6 +39,8 @@ from app.schemas import (
     TrackRefusal,
     TrackRefusalCode,
     TrackServerMessage,
+    error_summary,
+    load_json,
 )
 from app.services.errors import ServiceError
 from app.services.tracking import StreamFrame, TrackingContext, TrackingService, TrackState
@@ -48,6 +50,9 @@ log = logging.getLogger(__name__)
 
 #: At most one rate_limited error message per this many seconds.
 RATE_LIMIT_NOTICE_S = 1.0
+#: Longest config message, characters (a config with intrinsics has a few hundred): a
+#: longer one is refused before it is parsed.
+MAX_CONFIG_CHARS = 16 * 1024
 
 
 class TrackChannel(Protocol):
@@ -255,10 +260,15 @@ class TrackStreams:
 
 
 async def _configure(channel: TrackChannel, stream: _Stream, text: str) -> None:
+    if len(text) > MAX_CONFIG_CHARS:
+        await _error(channel, "bad_message", f"a text message has {len(text)} characters; a config has at most "
+                     f"{MAX_CONFIG_CHARS}")
+        return
     try:
-        message = json.loads(text)
+        message = load_json(text)
     except (ValueError, RecursionError):  # JSONDecodeError, or nesting deeper than Python's stack
-        await _error(channel, "bad_message", "text messages must be JSON; frames go as binary messages")
+        await _error(channel, "bad_message", "text messages must be JSON objects of at most "
+                     f"{MAX_JSON_KEYS} keys; frames go as binary messages")
         return
     if not isinstance(message, dict) or message.get("type") != "config":
         await _error(channel, "bad_message", 'the only text message is {"type": "config", ...}')
@@ -266,8 +276,7 @@ async def _configure(channel: TrackChannel, stream: _Stream, text: str) -> None:
     try:
         stream.config = TrackConfig.model_validate(message)
     except ValidationError as exc:
-        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        await _error(channel, "bad_config", detail)
+        await _error(channel, "bad_config", error_summary(exc.errors(include_url=False, include_input=False)))
         return
     await channel.send(stream.config)
 

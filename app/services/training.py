@@ -31,8 +31,8 @@ class TrainingParams(BaseModel):
     max_pixels: int
 
 
-def submit_training(session: Session, runner: JobRunner, settings: Settings, *, images: list[bytes], name: str,
-                    base_classifier_id: int | None, family: str) -> JobOut:
+def submit_training(session: Session, runner: JobRunner, settings: Settings, memory: image_service.MemoryBudget, *,
+                    images: list[bytes], name: str, base_classifier_id: int | None, family: str) -> JobOut:
     """Check the upload whole, store the images under server-chosen names and queue
     the training job. Nothing is stored when any image is refused."""
     if family not in FAMILIES:
@@ -45,7 +45,8 @@ def submit_training(session: Session, runner: JobRunner, settings: Settings, *, 
     classifiers.get_row(session, base)
     for index, data in enumerate(images):
         try:
-            image_service.decode(data, settings)
+            with image_service.decoded(data, settings, memory, detect=False):
+                pass
         except ServiceError as exc:
             exc.detail = f"images[{index}]: {exc.detail}"
             raise

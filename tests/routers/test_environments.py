@@ -10,6 +10,7 @@ from sqlalchemy import text
 from fastapi.testclient import TestClient
 
 from app.main import create_app
+from app.schemas import MAX_LISTED_ERRORS
 from app.settings import Settings
 from tests.conftest import example_map
 
@@ -138,6 +139,35 @@ def test_malformed_json_body_is_422(client: TestClient) -> None:
         f"/environments/{env['id']}/map", content=b"{not json", headers={"content-type": "application/json"}
     )
     assert reply.status_code == 422
+
+
+def test_a_json_body_over_its_limit_is_413_before_it_is_read(client: TestClient) -> None:
+    # A map of every card of the largest family is about 0.1 MiB; 20 MiB of one once held
+    # every other client for seconds while it was parsed.
+    env = _create(client)
+    good = example_map()
+    body = json.dumps({**good, "targets": good["targets"] * 20_000}).encode()
+    assert len(body) > 2 * 1024 * 1024
+    reply = client.put(f"/environments/{env['id']}/map", content=body, headers={"content-type": "application/json"})
+    assert reply.status_code == 413 and "limit" in reply.json()["detail"]
+
+
+def test_an_object_of_too_many_keys_is_refused_with_a_short_reply(client: TestClient) -> None:
+    env = _create(client)
+    body = {**example_map(), **{f"e{i}": 0 for i in range(50_000)}}
+    reply = client.put(f"/environments/{env['id']}/map", json=body)
+    assert reply.status_code == 422
+    assert "keys" in reply.json()["detail"] and len(reply.content) < 2000
+
+
+def test_many_errors_are_counted_not_each_listed(client: TestClient) -> None:
+    env = _create(client)
+    good = example_map()
+    wrong = {**good, "targets": [{"id": "x", "discs": "y", "std_m": "z"}] * 300}
+    reply = client.put(f"/environments/{env['id']}/map", json=wrong)
+    assert reply.status_code == 422
+    detail, errors = reply.json()["detail"], reply.json()["errors"]
+    assert len(errors) == MAX_LISTED_ERRORS and "more errors" in detail and len(reply.content) < 5000
 
 
 def test_environments_and_maps_survive_restart(settings: Settings) -> None:

@@ -119,6 +119,12 @@ def _garbage(frames: list[bytes]) -> list[tuple[str, str | bytes, str]]:
         ("GIF", b"GIF89a\x01\x00\x01\x00\x00\x00\x00;", "bad_frame"),
         ("random bytes", rng.randbytes(5000), "bad_frame"),
         ("text as binary", b'{"type": "config"}', "bad_frame"),
+        ("a config of 20 unknown keys", json.dumps({"type": "config", **{f"e{i}": 0 for i in range(20)}}),
+         "bad_message"),
+        ("a config of 1 MB", json.dumps({"type": "config", **{f"e{i}": 0 for i in range(100_000)}}), "bad_message"),
+        ("a 6324x6324 JPEG of 333 bytes", jpeg[: sof + 5] + struct.pack(">HH", 6324, 6324) + jpeg[sof + 9 : sof + 300]
+         + b"\xff\xd9", "bad_frame"),
+        ("a JPEG cut short with an end marker", jpeg[: len(jpeg) // 2] + b"\xff\xd9", "bad_frame"),
     ]
 
 
@@ -162,6 +168,8 @@ def test_garbage_gets_errors_while_another_client_keeps_tracking(
                 assert reply["type"] == "error", (name, reply)
                 assert reply["code"] == code, (name, reply)
                 assert isinstance(reply["message"], str) and reply["message"], name
+                # Short, whatever came in: the input is never echoed, nor each of its errors.
+                assert len(reply["message"]) < 1500, (name, len(reply["message"]))
                 if isinstance(message, bytes):
                     assert reply["seq"] == seq, (name, reply)
                     seq += 1
