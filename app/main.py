@@ -11,7 +11,7 @@ from contextlib import asynccontextmanager
 
 import anyio
 import cv2
-from fastapi import Depends, FastAPI, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from threadpoolctl import threadpool_limits
@@ -19,8 +19,7 @@ from threadpoolctl import threadpool_limits
 from app import __version__, logs
 from app.core.detection import warm_up
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.deps import authorize
-from app.middleware import BodyLimit, RequestObserver
+from app.middleware import ApiKeyGate, BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.schemas import MAX_LISTED_ERRORS, error_summary
@@ -86,8 +85,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Marker-based camera tracking: learned fiducial detection, automatic survey, "
         "per-frame pose (Claus & Fitzgibbon, WACV 2005).",
         lifespan=lifespan,
-        # Every route passes the API-key gate (a no-op unless settings.api_keys).
-        dependencies=[Depends(authorize)],
     )
     settings = settings or Settings()
     app.state.settings = settings
@@ -105,6 +102,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": error_summary(errors), "errors": errors[:MAX_LISTED_ERRORS]},
                             status_code=422)
 
+    # Innermost: every request passes the API-key gate (a no-op unless settings.api_keys).
+    app.add_middleware(ApiKeyGate)
     app.add_middleware(RequestObserver, metrics=app.state.metrics)
     # Outermost: a body over the limit is refused before any of it is read.
     app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes, image_limit=settings.max_image_bytes,

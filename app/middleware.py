@@ -1,6 +1,9 @@
 """Pure ASGI middleware (no task groups around ``receive``, so an error raised while a
 body is read reaches the exception handlers as itself).
 
+`ApiKeyGate`: with API keys on, every request's key and scope are checked before any of
+its body is read (a dependency would run only after FastAPI has read and parsed it).
+
 `BodyLimit`: request body limits, enforced before and while the body is read. A declared
 Content-Length over the limit is refused with 413 before a byte of the body is read; a
 body without one (chunked) is counted as it streams in and refused as soon as it passes
@@ -16,9 +19,12 @@ import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
+import anyio
 from fastapi import HTTPException
+from starlette.requests import HTTPConnection
 
 from app import logs
+from app.services import keys
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -86,12 +92,93 @@ class BodyLimit:
         await self.app(scope, counted, send)
 
 
-async def _reply(send: Send, status: int, detail: str) -> None:
+async def _reply(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    # The connection is closed after the reply: the client may still be sending a body
+    # that nobody will read.
     body = json.dumps({"detail": detail}).encode()
     await send({"type": "http.response.start", "status": status,
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})
+                            (b"connection", b"close"), *(headers or [])]})
     await send({"type": "http.response.body", "body": body})
+
+
+# --- API keys -------------------------------------------------------------------------
+
+#: Paths anyone may call even with keys on: orchestrators' probes carry no keys, and the
+#: API's description holds no data.
+OPEN_PATHS = frozenset({"/livez", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+#: What a ``track`` key may do: stream frames, detect and locate.
+TRACK_ROUTES = (("POST", re.compile(r"^/detect/?$")), ("POST", re.compile(r"^/environments/[^/]+/locate/?$")),
+                ("WEBSOCKET", re.compile(r"^/track/?$")))
+WS_POLICY_VIOLATION = 1008
+
+
+def required_scope(method: str, path: str) -> str | None:
+    """The scope a request needs: None (open), ``track``, ``read`` (GET) or ``admin``."""
+    if path in OPEN_PATHS:
+        return None
+    if any(method == m and pattern.match(path) for m, pattern in TRACK_ROUTES):
+        return "track"
+    if path == "/keys" or path.startswith("/keys/"):
+        return "admin"  # even listing keys
+    if method in ("GET", "HEAD"):
+        return "read"
+    return "admin"
+
+
+def presented_key(connection: HTTPConnection) -> str | None:
+    """``X-API-Key``, or ``Authorization: Bearer``; WebSocket clients (browsers cannot
+    set headers there) may also pass ``?api_key=``."""
+    key = connection.headers.get("x-api-key")
+    if key is None:
+        auth = connection.headers.get("authorization", "")
+        if auth[:7].lower() == "bearer ":
+            key = auth[7:].strip()
+    if key is None and connection.scope["type"] == "websocket":
+        key = connection.query_params.get("api_key")
+    return key
+
+
+class ApiKeyGate:
+    """With ``api_keys`` on, every request passes here first (the policy is
+    `required_scope`). HTTP: 401 without a valid key, 403 without the scope, before any
+    of the body is read. WebSocket: accepted, then closed with code 1008 and the reason
+    (refused before accepting, a server can only answer the handshake with a bare HTTP
+    403, which no WebSocket client can read a reason from)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        state = scope["app"].state if "app" in scope else None
+        if scope["type"] not in ("http", "websocket") or state is None or not state.settings.api_keys:
+            await self.app(scope, receive, send)
+            return
+        method = "WEBSOCKET" if scope["type"] == "websocket" else scope["method"]
+        needed = required_scope(method, scope["path"])
+        if needed is None:
+            await self.app(scope, receive, send)
+            return
+        connection = HTTPConnection(scope)
+        principal = await anyio.to_thread.run_sync(_verify, state.sessionmaker, presented_key(connection))
+        if principal is not None and principal.allows(needed):
+            await self.app(scope, receive, send)
+            return
+        reason = ("a valid API key is required (header X-API-Key)" if principal is None
+                  else f"this API key lacks the {needed!r} scope")
+        if scope["type"] == "websocket":
+            await receive()  # the client's connect
+            await send({"type": "websocket.accept"})
+            await send({"type": "websocket.close", "code": WS_POLICY_VIOLATION, "reason": reason})
+        elif principal is None:
+            await _reply(send, 401, reason, [(b"www-authenticate", b"ApiKey")])
+        else:
+            await _reply(send, 403, reason)
+
+
+def _verify(sessions: Any, key: str | None) -> keys.Principal | None:
+    with sessions() as session:
+        return keys.verify(session, key)
 
 
 class RequestObserver:

@@ -116,3 +116,28 @@ def test_oversized_track_frames_get_frame_too_large_until_the_transport_limit(tm
                 # The server closes with 1009 while the client may still be sending: then
                 # the close frame can be lost in the reset, but never another code.
                 assert closed.rcvd is None or closed.rcvd.code == 1009, closed.rcvd
+
+
+def test_requests_without_a_key_are_refused_before_their_body_is_read(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # The client declares a large body and sends a few bytes of it: the refusal must come
+    # without the server waiting for (or reading) the rest.
+    import socket
+    from urllib.parse import urlsplit
+
+    monkeypatch.setenv("FIDOTRACK_API_KEYS", "true")
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        address = urlsplit(server.url)
+        for method, path, content_type, length in (
+            ("POST", "/environments/1/survey", "multipart/form-data; boundary=b", 200 * 2**20),
+            ("POST", "/classifiers", "multipart/form-data; boundary=b", 100 * 2**20),
+            ("PUT", "/environments/1/map", "application/json", 900 * 2**10),
+        ):
+            with socket.create_connection((address.hostname, address.port), timeout=10) as sock:
+                head = (f"{method} {path} HTTP/1.1\r\nHost: fidotrack\r\nContent-Type: {content_type}\r\n"
+                        f"Content-Length: {length}\r\n\r\n")
+                sock.sendall(head.encode() + b"--b\r\n")
+                reply = b""
+                while chunk := sock.recv(4096):  # the server closes the connection after its reply
+                    reply += chunk
+            assert reply.startswith(b"HTTP/1.1 401"), (path, reply[:200])
+            assert b"API key" in reply

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.cli import main as cli
-from app.deps import OPEN_PATHS, required_scope
+from app.middleware import OPEN_PATHS, required_scope
 from app.main import create_app
 from app.models import ApiKey
 from app.services import keys
