@@ -355,12 +355,13 @@ ScanReason = Literal["first", "regions", "periodic", "lost", "fallback", "wide",
 TrackErrorCode = Literal["bad_message", "bad_config", "bad_frame", "frame_too_large", "rate_limited",
                          "internal_error"]
 #: Codes of `TrackRefusal` (the connection is closed).
-TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections"]
+TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections", "idle"]
 
 
 class TrackCloseCode(IntEnum):
     """WebSocket close codes of ``/track``."""
 
+    GOING_AWAY = 1001  # the client sent nothing for ``track_idle_timeout_s``
     POLICY_VIOLATION = 1008  # a refused request: bad query, unknown environment, no map, missing API key
     SERVER_ERROR = 1011  # the connection failed on the server's side
     TRY_AGAIN_LATER = 1013  # the server already tracks ``max_track_connections`` connections
@@ -433,12 +434,13 @@ class TrackError(BaseModel):
 
 class TrackRefusal(BaseModel):
     """Server -> client: the connection is refused and closed right after this message (close
-    code 1013 for ``too_many_connections``, else 1008)."""
+    code 1013 for ``too_many_connections``, 1001 for ``idle``, else 1008)."""
 
     type: Literal["error"] = Field("error", description='Always "error".')
     code: TrackRefusalCode = Field(description=(
         "bad_request: environment_id is missing or not an integer; unknown_environment: no such environment; "
-        "no_map: the environment has no map yet; too_many_connections: try again later."))
+        "no_map: the environment has no map yet; too_many_connections: try again later; idle: the client sent "
+        "no message for track_idle_timeout_s (connect again to go on)."))
     message: str = Field(description="Why, for a person.")
 
     @property
@@ -446,6 +448,8 @@ class TrackRefusal(BaseModel):
         """The WebSocket close code that follows this message."""
         if self.code == "too_many_connections":
             return TrackCloseCode.TRY_AGAIN_LATER
+        if self.code == "idle":
+            return TrackCloseCode.GOING_AWAY
         return TrackCloseCode.POLICY_VIOLATION
 
 

@@ -50,6 +50,9 @@ class Settings(BaseSettings):
     survey_frames: int = Field(1000, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
     max_track_fps: float = Field(120.0, gt=0, description="Frames per second one /track client may send.")
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
+    track_idle_timeout_s: float = Field(30.0, gt=0, le=86400, description=(
+        "A /track connection that sends no message for this long is closed (error `idle`, close code 1001), "
+        "so that idle clients cannot hold every connection slot."))
     max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
     image_threads: int = Field(1, ge=1, le=64, description=(

@@ -189,7 +189,9 @@ class TrackStreams:
         for task in done:
             if task.cancelled():
                 continue
-            if (exc := task.exception()) is not None and not isinstance(exc, ClientGone):
+            if isinstance(exc := task.exception(), Refused):
+                raise exc  # refused while open (idle): said and closed by the caller
+            if exc is not None and not isinstance(exc, ClientGone):
                 log.warning("track connection ended with %r", exc)
                 failed = True
         if failed:
@@ -198,8 +200,17 @@ class TrackStreams:
 
     async def _receive(self, channel: TrackChannel, stream: _Stream) -> None:
         max_frame_bytes = self.settings.max_frame_bytes
+        idle_s = self.settings.track_idle_timeout_s
         try:
-            while (message := await channel.receive()) is not None:
+            while True:
+                try:
+                    async with asyncio.timeout(idle_s):
+                        message = await channel.receive()
+                except TimeoutError:
+                    raise Refused("idle", f"no message for {idle_s:g} s: the connection is closed; connect again "
+                                  "to go on") from None
+                if message is None:
+                    break
                 if isinstance(message, bytes):
                     seq = stream.received
                     stream.received += 1

@@ -356,3 +356,24 @@ def test_connection_limit_refuses_with_1013_and_frees_slots(tmp_path: Path, worl
             assert time.monotonic() < deadline, "slots were never released"
             time.sleep(0.05)
         assert client.get("/livez").status_code == 200
+
+
+def test_an_idle_connection_is_closed_and_gives_its_slot_back(tmp_path: Path, world: World) -> None:
+    _, _, frames = world
+    for client, environment in _app_client(tmp_path, world, max_track_connections=1, track_idle_timeout_s=0.5):
+        url = f"/track?environment_id={environment}"
+        with client.websocket_connect(url) as idle:
+            assert receive(idle)["type"] == "hello"
+            idle.send_bytes(frames[0])
+            assert receive(idle)["type"] == "frame"  # a client that sends stays open ...
+            started = time.monotonic()
+            message = receive(idle)  # ... until it sends nothing for the timeout
+            assert message["type"] == "error" and message["code"] == "idle" and message["message"]
+            assert 0.4 < time.monotonic() - started < 5
+            with pytest.raises(WebSocketDisconnect) as closed:
+                receive(idle)
+            assert closed.value.code == 1001
+        with client.websocket_connect(url) as next_client:  # the one slot is free again
+            assert receive(next_client)["type"] == "hello"
+            next_client.send_bytes(frames[1])
+            assert receive(next_client)["pose"] is not None
