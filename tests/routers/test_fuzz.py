@@ -5,16 +5,24 @@ answers ``/livez`` afterwards.
 Inputs are generated from fixed seeds (the same cases every run): random bytes, real
 JPEG/PNG files with flipped bits, truncations, duplicated segments/chunks and edited
 header fields (sizes, lengths, CRCs), wrong content types, empty bodies, lying
-Content-Length headers, broken multipart forms, and deeply nested / huge / NaN JSON.
+Content-Length headers, broken multipart forms, deeply nested / huge / NaN JSON, and the
+hostile requests of a security review (cheap files that decode to gigabytes, bodies of
+megabytes of JSON, extreme numbers in maps).
+
+Every reply's status is tallied; the last test checks that none was a 5xx and that the
+README's security section states the tally of a full run.
 """
 
 from __future__ import annotations
 
 import json
 import random
+import re
 import struct
 import zlib
+from collections import Counter
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -46,6 +54,10 @@ class _Recorder:
             raise
 
 
+#: Status codes of every reply of this module's tests, in the order they run.
+TALLY: Counter[int] = Counter()
+
+
 class Fuzz:
     def __init__(self, client: TestClient, recorder: _Recorder, environment_id: int) -> None:
         self.client = client
@@ -63,6 +75,7 @@ class Fuzz:
         except Exception as exc:  # the client itself blew up: a dead connection/server
             self.failures.append(f"{case}: request raised {exc!r}")
             return
+        TALLY[reply.status_code] += 1
         escaped = self.recorder.errors[before:]
         if escaped:
             self.failures.append(f"{case}: application raised {escaped[0][1]!r}")
@@ -517,3 +530,108 @@ def test_ids_beyond_64_bits(fuzz: Fuzz) -> None:
         fuzz.check(f"create environment classifier {classifier_id}", lambda: fuzz.client.post(
             "/environments", json={"name": "a", "marker_size_m": 0.2, "classifier_id": classifier_id}))
     fuzz.assert_clean()
+
+
+# --- hostile requests -------------------------------------------------------------------
+
+
+def _rendered_world() -> tuple[dict[str, Any], bytes]:
+    """A map and a frame whose targets the detector finds, so that every pose method runs."""
+    from app.core.geometry.camera import Camera, Pose
+    from app.sim import degrade
+
+    rng = np.random.default_rng(31)
+    camera = Camera.pinhole(820.0, 640, 480)
+    scene = scenes.single_frame_scene(rng, camera, n_targets=3, distance_m=(1.2, 2.0), tilt_deg=(0, 30))
+    image, _ = scenes.render_frame(scene, camera, Pose.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.6], up=(0.0, -1.0, 0.0)),
+                                   rng, degrade.PRESETS["none"].sample(rng))
+    return scene.map_document(camera), cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+
+
+def test_hostile_requests(fuzz: Fuzz, seeds: dict[str, bytes]) -> None:
+    """The requests of a security review, each once cheap to send and costly (or fatal)
+    to serve: now each a prompt 4xx, or a 2xx where the input is valid."""
+    client, env = fuzz.client, fuzz.environment_id
+    jpeg = seeds["jpeg"]
+    big_map = example_map(1)
+    big_map["targets"] = [dict(big_map["targets"][0], id=i) for i in range(60_000)]
+    fuzz.check("20 MB JSON map", lambda: client.put(f"/environments/{env}/map", content=json.dumps(big_map).encode(),
+                                                      headers={"content-type": "application/json"}))
+    many_keys = {**example_map(1), **{f"e{i}": 0 for i in range(100_000)}}
+    fuzz.check("1 MB JSON of unknown keys", lambda: client.put(f"/environments/{env}/map", json=many_keys))
+    fuzz.check("333-byte JPEG declaring 6324x6324", lambda: client.post(
+        "/detect", content=_with_jpeg_size(jpeg, 6324, 6324)[:333] + b"\xff\xd9",
+        headers={"content-type": "image/jpeg"}))
+    rgba16 = cv2.imencode(".png", np.zeros((2000, 2000, 4), np.uint16))[1].tobytes()
+    fuzz.check("16-bit RGBA PNG, 2000x2000", lambda: client.post("/detect", content=rgba16))
+    fuzz.check("JPEG cut short, end marker added", lambda: client.post(
+        "/detect", content=jpeg[: len(jpeg) // 2] + b"\xff\xd9"))
+    sos = jpeg.index(b"\xff\xda")
+    comment = b"\xff\xda" * 100
+    fuzz.check("FF DA inside a comment", lambda: client.post(
+        "/detect", content=jpeg[:sos] + b"\xff\xfe" + struct.pack(">H", len(comment) + 2) + comment + jpeg[sos:]))
+    for path_id in ("1%20", "+1", "01", "1.0", "%D9%A1"):
+        fuzz.check(f"delete environment {path_id}", lambda: client.delete(f"/environments/{path_id}"))
+    for name in ("a\u0000b", "a\nb", "\u001b[31mred"):
+        fuzz.check(f"environment named {name!r}", lambda: client.post(
+            "/environments", json={"name": name, "marker_size_m": 0.2}))
+    # Extreme but finite numbers: refused where they enter ...
+    document, frame = _rendered_world()
+    extreme = []
+    for edit in ("K 1e300", "K 1e-300", "dist 1e300", "disc 1e307"):
+        bad = json.loads(json.dumps(document))
+        if edit.startswith("K"):
+            bad["camera"]["K"][0][0] = bad["camera"]["K"][1][1] = float(edit.split()[1])
+        elif edit.startswith("dist"):
+            bad["camera"]["dist"][0] = 1e300
+        else:
+            bad["targets"][0]["discs"][0][0] = 1e307
+        extreme.append((edit, bad))
+    for edit, bad in extreme:
+        fuzz.check(f"map with {edit}", lambda: client.put(f"/environments/{env}/map", json=bad))
+    # ... and at the edges of what is accepted, every pose method still answers.
+    edges = []
+    for edit in ("K 1e7", "K 1e-3", "dist 1e4", "dist -1e4", "discs 1e6 away"):
+        edge = json.loads(json.dumps(document))
+        if edit.startswith("K"):
+            edge["camera"]["K"][0][0] = edge["camera"]["K"][1][1] = float(edit.split()[1])
+        elif edit.startswith("dist"):
+            edge["camera"]["dist"] = [float(edit.split()[1])] * 5
+        else:
+            for target in edge["targets"]:
+                target["discs"] = [[c + 9.9e5 for c in disc] for disc in target["discs"]]
+        edges.append((edit, edge))
+    accepted = 0
+    for edit, edge in [("as rendered", document), *edges]:
+        if client.put(f"/environments/{env}/map", json=edge).status_code != 200:
+            continue
+        accepted += 1
+        for method in ("nonlinear", "posit", "mean", "single"):
+            for focal in ("false", "true"):
+                fuzz.check(f"locate {method} focal={focal}, map {edit}", lambda: client.post(
+                    f"/environments/{env}/locate?method={method}&estimate_focal={focal}", content=frame))
+    assert accepted == 6
+    assert client.put(f"/environments/{env}/map", json=example_map(3)).status_code == 200
+    fuzz.assert_clean()
+
+
+# --- the tally -------------------------------------------------------------------------
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+
+def tally_line(tally: Counter[int]) -> str:
+    """The README's statement of a full run's tally."""
+    statuses = ", ".join(f"{status} x{count}" for status, count in sorted(tally.items()))
+    return f"{sum(tally.values())} requests ({statuses}), none answered with a 5xx"
+
+
+def test_no_reply_was_a_5xx_and_the_readme_states_the_tally(request: pytest.FixtureRequest) -> None:
+    assert TALLY and not [s for s in TALLY if s >= 500], TALLY
+    module = request.node.module
+    selected = {item.name.split("[")[0] for item in request.session.items if item.module is module}
+    every = {name for name in dir(module) if name.startswith("test_")}
+    if selected == every:  # a full run of this module (not a -k selection)
+        stated = re.search(r"\d+ requests \([^)]*\), none answered with a 5xx", README.read_text())
+        assert stated is not None and stated.group(0) == tally_line(TALLY), (
+            f"update the README's security section to: {tally_line(TALLY)}")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import cv2
@@ -975,17 +976,19 @@ def estimate_pose(
     """
     if not observations:
         raise PoseUndetermined("no identified target with a known map position")
-    if method == "nonlinear":
-        return nonlinear(observations, camera, estimate_focal)
-    if estimate_focal:
+    if method not in METHODS:
+        raise ValueError(f"unknown pose method {method!r}; known: {', '.join(METHODS)}")
+    if estimate_focal and method != "nonlinear":
         raise PoseUndetermined(f"focal estimation needs the nonlinear method, not {method!r}")
-    if method == "posit":
-        return posit(observations, camera)
-    if method == "mean":
-        return mean(observations, camera)
-    if method == "single":
-        return single(observations, camera)
-    raise ValueError(f"unknown pose method {method!r}; known: {', '.join(METHODS)}")
+    estimator = {"nonlinear": partial(nonlinear, estimate_focal=estimate_focal), "posit": posit, "mean": mean,
+                 "single": single}[method]
+    try:
+        return estimator(observations, camera)
+    except (np.linalg.LinAlgError, cv2.error) as exc:
+        # A camera or map at the edge of what is representable (a focal length of a
+        # thousandth of a pixel, discs a thousand kilometres away) can make the linear
+        # algebra fail: no pose, said as such, rather than a server error.
+        raise PoseUndetermined(f"the {method} pose computation failed numerically ({exc.__class__.__name__})") from None
 
 
 def cramer_rao_position_rms(camera: Camera, pose: Pose, world: np.ndarray, sigma_px: float) -> float:
