@@ -1,5 +1,7 @@
 """FastAPI dependencies, as annotated types (``SessionDep``, ``SettingsDep``, ...): the
-application's shared state, for HTTP routes and WebSockets alike."""
+application's shared state, for HTTP routes and WebSockets alike. The getters of shared
+objects are ``async``: FastAPI runs a plain ``def`` dependency in a worker thread, a hop
+per request for an attribute lookup."""
 
 from __future__ import annotations
 
@@ -7,7 +9,6 @@ import re
 from collections.abc import Iterator
 from typing import Annotated
 
-import anyio
 from fastapi import Depends, Path
 from pydantic import BeforeValidator
 from sqlalchemy import Engine
@@ -15,19 +16,21 @@ from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
 from app.services.detection import DetectorCache
+from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget
 from app.services.jobs import JobRunner
+from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
 from app.services.tracking import TrackingService
 from app.settings import Settings
 
 
-def get_settings(connection: HTTPConnection) -> Settings:
+async def get_settings(connection: HTTPConnection) -> Settings:
     return connection.app.state.settings
 
 
-def get_engine(connection: HTTPConnection) -> Engine:
+async def get_engine(connection: HTTPConnection) -> Engine:
     return connection.app.state.engine
 
 
@@ -36,31 +39,35 @@ def get_session(connection: HTTPConnection) -> Iterator[Session]:
         yield session
 
 
-def get_metrics(connection: HTTPConnection) -> Metrics:
+async def get_metrics(connection: HTTPConnection) -> Metrics:
     return connection.app.state.metrics
 
 
-def get_detectors(connection: HTTPConnection) -> DetectorCache:
+async def get_detectors(connection: HTTPConnection) -> DetectorCache:
     return connection.app.state.detectors
 
 
-def get_jobs(connection: HTTPConnection) -> JobRunner:
+async def get_jobs(connection: HTTPConnection) -> JobRunner:
     return connection.app.state.jobs
 
 
-def get_image_memory(connection: HTTPConnection) -> MemoryBudget:
+async def get_image_memory(connection: HTTPConnection) -> MemoryBudget:
     return connection.app.state.image_memory
 
 
-def get_image_threads(connection: HTTPConnection) -> anyio.CapacityLimiter:
-    return connection.app.state.image_threads
+async def get_image_workers(connection: HTTPConnection) -> ImageWorkers:
+    return connection.app.state.image_workers
 
 
-def get_tracking(connection: HTTPConnection) -> TrackingService:
+async def get_verified_keys(connection: HTTPConnection) -> VerifiedKeys:
+    return connection.app.state.verified_keys
+
+
+async def get_tracking(connection: HTTPConnection) -> TrackingService:
     return connection.app.state.tracking
 
 
-def get_track_streams(connection: HTTPConnection) -> TrackStreams:
+async def get_track_streams(connection: HTTPConnection) -> TrackStreams:
     return connection.app.state.track_streams
 
 
@@ -85,7 +92,8 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 DetectorsDep = Annotated[DetectorCache, Depends(get_detectors)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
 TrackingDep = Annotated[TrackingService, Depends(get_tracking)]
+VerifiedKeysDep = Annotated[VerifiedKeys, Depends(get_verified_keys)]
 ImageMemoryDep = Annotated[MemoryBudget, Depends(get_image_memory)]
-#: The threads of /detect and /locate (apart from /track's).
-ImageThreadsDep = Annotated[anyio.CapacityLimiter, Depends(get_image_threads)]
+#: The processes of /detect and /locate (apart from /track's threads).
+ImageWorkersDep = Annotated[ImageWorkers, Depends(get_image_workers)]
 TrackStreamsDep = Annotated[TrackStreams, Depends(get_track_streams)]

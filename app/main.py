@@ -10,11 +10,9 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
-import cv2
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from threadpoolctl import threadpool_limits
 
 from app import __version__, logs
 from app.core.detection import warm_up
@@ -26,7 +24,9 @@ from app.schemas import MAX_LISTED_ERRORS, error_summary
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
-from app.services.images import MemoryBudget
+from app.services.keys import VerifiedKeys
+from app.services.image_workers import ImageWorkers
+from app.services.images import MemoryBudget, limit_compute_threads
 from app.services.jobs import JobRunner
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
@@ -40,7 +40,7 @@ log = logging.getLogger("app")
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     logs.configure(settings.log_format, settings.log_level)
-    _limit_compute_threads(settings.compute_threads)
+    limit_compute_threads(settings.compute_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
@@ -58,7 +58,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.jobs = runner
     app.state.detectors = DetectorCache()
     app.state.image_memory = MemoryBudget(settings.image_memory_bytes)
-    app.state.image_threads = anyio.CapacityLimiter(settings.image_threads)
+    # Started by the first image (about 2 s): most deployments never call /detect or /locate.
+    app.state.image_workers = ImageWorkers(settings, app.state.image_memory)
     app.state.tracking = TrackingService(detectors=app.state.detectors, sessions=sessions, settings=settings,
                                          memory=app.state.image_memory)
     # Frames of all clients share a few worker threads (OpenCV releases the GIL).
@@ -67,15 +68,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     try:
         yield
     finally:
+        app.state.image_workers.shutdown()
         runner.shutdown()
         engine.dispose()
-
-
-def _limit_compute_threads(threads: int) -> None:
-    """OpenCV's and BLAS's own thread pools (process-wide): a frame is small work, and
-    its pools' idle threads spin on the cores other frames and clients need."""
-    cv2.setNumThreads(threads)
-    threadpool_limits(limits=threads)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -89,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     app.state.settings = settings
     app.state.metrics = Metrics()
+    app.state.verified_keys = VerifiedKeys()
 
     @app.exception_handler(ServiceError)
     async def _service_error(_request: Request, exc: ServiceError) -> JSONResponse:

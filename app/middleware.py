@@ -159,8 +159,12 @@ class ApiKeyGate:
         if needed is None:
             await self.app(scope, receive, send)
             return
-        connection = HTTPConnection(scope)
-        principal = await anyio.to_thread.run_sync(_verify, state.sessionmaker, presented_key(connection))
+        key = presented_key(HTTPConnection(scope))
+        principal = state.verified_keys.get(key)
+        if principal is None:
+            principal = await anyio.to_thread.run_sync(_verify, state.sessionmaker, key)
+            if principal is not None and key is not None:
+                state.verified_keys.remember(key, principal)
         if principal is not None and principal.allows(needed):
             await self.app(scope, receive, send)
             return

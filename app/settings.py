@@ -55,9 +55,14 @@ class Settings(BaseSettings):
         "so that idle clients cannot hold every connection slot."))
     max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
-    image_threads: int = Field(1, ge=1, le=64, description=(
-        "Threads processing /detect and /locate images, apart from the tracking frames' threads: those "
+    image_workers: int = Field(1, ge=1, le=64, description=(
+        "Processes for /detect and /locate images, apart from the web process and its /track frames: those "
         "requests queue for them, so that a burst of them cannot take the cores /track streams need."))
+    image_workers_nice: int = Field(19, ge=0, le=19, description=(
+        "How much lower the OS priority of the image workers is than the web process's (a nice increment; "
+        "0: the same)."))
+    max_image_requests: int = Field(32, ge=1, description=(
+        "/detect and /locate requests being read, queued or processed at once; more get 503."))
     image_memory_bytes: int = Field(1024 * 1024 * 1024, ge=64 * 1024 * 1024, description=(
         "Memory the client images being decoded and detected may hold at once, all routes together (each "
         "image's cost is read from its header): an image that alone needs more is refused (413), others "

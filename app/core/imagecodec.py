@@ -197,6 +197,15 @@ def _jpeg_scans(data: bytes, i: int) -> int:
 def check_size(header: ImageHeader, max_pixels: int, max_side: int = 30000) -> None:
     """Refuse a declared size of zero or over the limits.
 
+    Parameters
+    ----------
+    header : ImageHeader
+        What the image declares.
+    max_pixels : int
+        Largest width * height accepted.
+    max_side : int, optional
+        Largest width or height accepted.
+
     Raises
     ------
     ImageError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from app.deps import RowId, SessionDep
+from app.deps import RowId, SessionDep, VerifiedKeysDep
 from app.routers.json_bodies import JsonBodyRoute
 from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut, Problem
 from app.services import keys
@@ -24,5 +24,7 @@ def list_keys(session: SessionDep) -> list[ApiKeyOut]:
 
 
 @router.delete("/{key_id}", response_model=ApiKeyOut, responses={404: {"model": Problem}})
-def revoke_key(key_id: RowId, session: SessionDep) -> ApiKeyOut:
-    return ApiKeyOut.model_validate(keys.revoke(session, key_id), from_attributes=True)
+def revoke_key(key_id: RowId, session: SessionDep, verified: VerifiedKeysDep) -> ApiKeyOut:
+    revoked = keys.revoke(session, key_id)
+    verified.clear()  # refused from the next request on, not after the cache's few seconds
+    return ApiKeyOut.model_validate(revoked, from_attributes=True)

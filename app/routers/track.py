@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import contextlib
-from functools import partial
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
-from app.deps import ImageThreadsDep, RowId, SettingsDep, TrackingDep, TrackStreamsDep
+from app.deps import ImageWorkersDep, RowId, SettingsDep, TrackStreamsDep
 from app.routers.json_bodies import JsonBodyRoute
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
@@ -29,16 +27,16 @@ async def locate(
     environment_id: RowId,
     request: Request,
     settings: SettingsDep,
-    tracking: TrackingDep,
-    threads: ImageThreadsDep,
+    workers: ImageWorkersDep,
     method: Annotated[str, Query(pattern="^(nonlinear|posit|mean|single)$")] = "nonlinear",
     estimate_focal: bool = False,
 ) -> LocateResponse:
     """Detections and the camera pose for one image (``pose`` is null with a reason
     in ``pose_error`` when the visible targets do not determine it)."""
-    data = await read_image_body(request, settings.max_image_bytes)
-    config = TrackConfig(method=method, estimate_focal=estimate_focal)  # type: ignore[arg-type]
-    return await anyio.to_thread.run_sync(partial(tracking.locate, environment_id, data, config), limiter=threads)
+    with workers.admitted():
+        data = await read_image_body(request, settings.max_image_bytes)
+        config = TrackConfig(method=method, estimate_focal=estimate_focal)  # type: ignore[arg-type]
+        return await workers.locate(environment_id, data, config)
 
 
 @router.websocket("/track")

@@ -3,11 +3,13 @@ that takes images decodes them here), within a memory budget shared by every rou
 
 from __future__ import annotations
 
-import threading
+import multiprocessing
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from app.core.detection import MIN_SIDE
 from app.core.imagecodec import ImageError, ImageHeader, check_size, decode_gray, read_header
@@ -25,8 +27,8 @@ _MB = 1e6
 
 class MemoryBudget:
     """Bytes that the client images being decoded and detected may hold at once, shared
-    by every route of the process (``/detect``, ``/locate``, ``/track`` frames, survey
-    uploads).
+    by every route (``/detect``, ``/locate``, ``/track`` frames, survey uploads) and by
+    the web process and its image workers (the count lives in shared memory).
 
     Each image's cost is known from its header before anything is decoded: an image that
     alone needs more than the whole budget is refused (413), and the others wait until
@@ -37,8 +39,15 @@ class MemoryBudget:
     def __init__(self, limit_bytes: int, wait_s: float = MEMORY_WAIT_S) -> None:
         self.limit = limit_bytes
         self.wait_s = wait_s
-        self.held = 0
-        self._room = threading.Condition()
+        spawn = multiprocessing.get_context("spawn")
+        self._held = spawn.Value("q", 0, lock=False)  # guarded by the condition's lock
+        self._room = spawn.Condition()
+
+    @property
+    def held(self) -> int:
+        """Bytes held now."""
+        with self._room:
+            return int(self._held.value)
 
     @contextmanager
     def hold(self, nbytes: int, what: str) -> Iterator[None]:
@@ -48,16 +57,23 @@ class MemoryBudget:
             raise TooLarge(f"{what} needs {nbytes / _MB:.0f} MB of memory to process; the server's image memory "
                            f"budget is {self.limit / _MB:.0f} MB")
         with self._room:
-            if not self._room.wait_for(lambda: self.held + nbytes <= self.limit, timeout=self.wait_s):
+            if not self._room.wait_for(lambda: self._held.value + nbytes <= self.limit, timeout=self.wait_s):
                 raise Busy(f"the server is busy with other images (its image memory budget of "
                            f"{self.limit / _MB:.0f} MB is in use); retry")
-            self.held += nbytes
+            self._held.value += nbytes
         try:
             yield
         finally:
             with self._room:
-                self.held -= nbytes
+                self._held.value -= nbytes
                 self._room.notify_all()
+
+
+def limit_compute_threads(threads: int) -> None:
+    """OpenCV's and BLAS's own thread pools (process-wide): a frame is small work, and
+    its pools' idle threads spin on the cores other frames and clients need."""
+    cv2.setNumThreads(threads)
+    threadpool_limits(limits=threads)
 
 
 def cost_bytes(header: ImageHeader, detect: bool) -> int:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
+import threading
+import time
 from dataclasses import dataclass
 
 from sqlalchemy import select
@@ -72,6 +74,41 @@ def verify(session: Session, key: str | None) -> Principal | None:
     if row is None or not matches or row.revoked_at is not None:
         return None
     return Principal(row.id, row.name, frozenset(row.scopes))
+
+
+#: How long a verified key is taken as valid without asking the database again, s.
+VERIFIED_TTL_S = 2.0
+
+
+class VerifiedKeys:
+    """Principals of the keys verified in the last `ttl_s` seconds (by their hash), so
+    that a client sending many requests costs a database lookup every `ttl_s`, not one
+    per request. A revocation through this process clears it at once; other processes
+    sharing the database refuse a revoked key within `ttl_s`."""
+
+    def __init__(self, ttl_s: float = VERIFIED_TTL_S, max_keys: int = 10_000) -> None:
+        self.ttl_s = ttl_s
+        self.max_keys = max_keys
+        self._lock = threading.Lock()
+        self._seen: dict[str, tuple[Principal, float]] = {}
+
+    def get(self, key: str | None) -> Principal | None:
+        """The key's principal if it was verified within `ttl_s`, else None (verify it)."""
+        if not key:
+            return None
+        with self._lock:
+            found = self._seen.get(_hash(key))
+        return found[0] if found is not None and found[1] > time.monotonic() else None
+
+    def remember(self, key: str, principal: Principal) -> None:
+        with self._lock:
+            if len(self._seen) >= self.max_keys:
+                self._seen.clear()
+            self._seen[_hash(key)] = (principal, time.monotonic() + self.ttl_s)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._seen.clear()
 
 
 def list_all(session: Session) -> list[ApiKey]:

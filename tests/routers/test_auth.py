@@ -124,3 +124,21 @@ def test_cli_creates_a_key_that_the_service_accepts(tmp_path: Path, monkeypatch,
         assert client.get("/environments").status_code == 401
     assert cli(["keys", "list"]) == 0
     assert secret not in capsys.readouterr().out
+
+
+def test_a_key_revoked_by_another_process_is_refused_within_seconds(secured) -> None:
+    # The server remembers a verified key for a moment (one database lookup per key, not
+    # per request); a revocation made elsewhere (the CLI, another server) reaches it then.
+    import time
+
+    client, made = secured
+    read = _h(made["read"])
+    assert client.get("/environments", headers=read).status_code == 200
+    with client.app.state.sessionmaker() as session:
+        row = next(k for k in keys.list_all(session) if k.name == "read key")
+        keys.revoke(session, row.id)
+    deadline = time.monotonic() + keys.VERIFIED_TTL_S + 1.0
+    while client.get("/environments", headers=read).status_code == 200:
+        assert time.monotonic() < deadline, "a revoked key was still accepted"
+        time.sleep(0.1)
+    assert client.get("/environments", headers=read).status_code == 401

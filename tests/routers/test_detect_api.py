@@ -121,6 +121,8 @@ def test_an_image_whose_decoding_would_overrun_the_memory_budget_is_413_at_once(
     # own pyramid, seconds of work. Its header says so: refused before decoding.
     data = _encode(np.zeros((6000, 6000, 4), np.uint16), ".png")
     assert len(data) < 400_000
+    warm = client.post("/detect", content=_encode(np.zeros((48, 64), np.uint8), ".png"))  # the worker started
+    assert warm.status_code == 200
     started = time.perf_counter()
     reply = client.post("/detect", content=data, headers={"Content-Type": "image/png"})
     assert reply.status_code == 413, reply.text
