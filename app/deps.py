@@ -15,14 +15,12 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
-from app.services.detection import DetectorCache
 from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget
 from app.services.jobs import JobRunner
 from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
-from app.services.tracking import TrackingService
 from app.settings import Settings
 
 
@@ -43,10 +41,6 @@ async def get_metrics(connection: HTTPConnection) -> Metrics:
     return connection.app.state.metrics
 
 
-async def get_detectors(connection: HTTPConnection) -> DetectorCache:
-    return connection.app.state.detectors
-
-
 async def get_jobs(connection: HTTPConnection) -> JobRunner:
     return connection.app.state.jobs
 
@@ -61,10 +55,6 @@ async def get_image_workers(connection: HTTPConnection) -> ImageWorkers:
 
 async def get_verified_keys(connection: HTTPConnection) -> VerifiedKeys:
     return connection.app.state.verified_keys
-
-
-async def get_tracking(connection: HTTPConnection) -> TrackingService:
-    return connection.app.state.tracking
 
 
 async def get_track_streams(connection: HTTPConnection) -> TrackStreams:
@@ -89,9 +79,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
 SessionDep = Annotated[Session, Depends(get_session)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
-DetectorsDep = Annotated[DetectorCache, Depends(get_detectors)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
-TrackingDep = Annotated[TrackingService, Depends(get_tracking)]
 VerifiedKeysDep = Annotated[VerifiedKeys, Depends(get_verified_keys)]
 ImageMemoryDep = Annotated[MemoryBudget, Depends(get_image_memory)]
 #: The processes of /detect and /locate (apart from /track's threads).

@@ -672,17 +672,21 @@ class Hostile:
                            {"Content-Type": "application/json"}, _chunks(self.big_map), len(self.big_map))
 
     async def track_big_config(self, stats: CaseStats) -> None:
+        await self._send_one(stats, self.big_config)
+
+    async def _send_one(self, stats: CaseStats, message: str | bytes) -> None:
+        """One /track connection that sends `message` once and records the reply (or the close)."""
         stats.attempts += 1
         sent = time.monotonic()
         try:
             async with self._connect() as ws:
                 await asyncio.wait_for(ws.recv(), TIMEOUT_S)  # hello
                 sent = time.monotonic()
-                await asyncio.wait_for(ws.send(self.big_config), TIMEOUT_S)
+                await asyncio.wait_for(ws.send(message), TIMEOUT_S)
                 reply = await asyncio.wait_for(ws.recv(), TIMEOUT_S)
                 stats.reply_bytes.append(len(reply))
-                message = json.loads(reply)
-                stats.reply(f"{message.get('type')}/{message.get('code', '-')}", sent)
+                decoded = json.loads(reply)
+                stats.reply(f"{decoded.get('type')}/{decoded.get('code', '-')}", sent)
         except ConnectionClosed as exc:
             stats.reply(self._closed(exc), sent)
 
@@ -725,18 +729,7 @@ class Hostile:
                             headers={"content-type": "image/jpeg", **self.key})
 
     async def track_big_frame(self, stats: CaseStats) -> None:
-        stats.attempts += 1
-        sent = time.monotonic()
-        try:
-            async with self._connect() as ws:
-                await asyncio.wait_for(ws.recv(), TIMEOUT_S)  # hello
-                sent = time.monotonic()
-                await asyncio.wait_for(ws.send(self.big_frame), TIMEOUT_S)
-                reply = await asyncio.wait_for(ws.recv(), TIMEOUT_S)
-                message = json.loads(reply)
-                stats.reply(f"{message.get('type')}/{message.get('code', '-')}", sent)
-        except ConnectionClosed as exc:
-            stats.reply(self._closed(exc), sent)
+        await self._send_one(stats, self.big_frame)
 
     async def _hold(self, stats: CaseStats) -> None:
         """One idle connection, opened again each time the server closes it."""
