@@ -34,6 +34,8 @@ MAX_JPEG_SCANS = 64
 _SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 # Those of progressive JPEGs: the decoder holds every coefficient of the image at once.
 _PROGRESSIVE_SOF = {0xC2, 0xC6, 0xCA, 0xCE}
+# Those of Huffman-coded JPEGs (see `check_size`).
+_HUFFMAN_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7}
 # Channels of each PNG colour type (a palette is decoded to BGR).
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
 # libjpeg's warnings about bytes a file has to spare, not about missing ones: some
@@ -73,6 +75,8 @@ class ImageHeader:
         Bytes per sample once decoded: 1, or 2 for 16-bit PNGs and 12-bit JPEGs.
     progressive : bool
         A progressive JPEG (decoded from whole-image coefficient buffers).
+    huffman_bytes : int or None
+        A Huffman-coded JPEG's bytes from its first scan on (None for other images).
     """
 
     format: str  # "jpeg" or "png"
@@ -81,6 +85,7 @@ class ImageHeader:
     channels: int = 1
     sample_bytes: int = 1
     progressive: bool = False
+    huffman_bytes: int | None = None
 
     @property
     def decode_bytes(self) -> int:
@@ -154,11 +159,13 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             precision, components = data[i + 4], data[i + 9] if i + 9 < len(data) else 1
             if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
                 raise ImageError("corrupt", "JPEG is truncated (no end-of-image marker)")
-            scans = _jpeg_scans(data, i)
+            scans, first_scan = _jpeg_scans(data, i)
             if scans > MAX_JPEG_SCANS:
                 raise ImageError("corrupt", f"JPEG has {scans} scans; at most {MAX_JPEG_SCANS} are accepted")
+            coded = len(data) - first_scan if marker in _HUFFMAN_SOF and first_scan is not None else None
             return ImageHeader("jpeg", int(width), int(height), channels=max(int(components), 1),
-                               sample_bytes=2 if precision > 8 else 1, progressive=marker in _PROGRESSIVE_SOF)
+                               sample_bytes=2 if precision > 8 else 1, progressive=marker in _PROGRESSIVE_SOF,
+                               huffman_bytes=coded)
     raise ImageError("corrupt", "JPEG header is truncated (no frame header found)")
 
 
@@ -185,17 +192,19 @@ def _jpeg_segments(data: bytes, i: int) -> Iterator[tuple[int, int, int]]:
         i += 2 + length
 
 
-def _jpeg_scans(data: bytes, i: int) -> int:
-    """The scans of a JPEG from byte `i` on: segment by segment up to the first scan, then
-    every FF DA, since 0xFF is stuffed as FF 00 inside entropy-coded data."""
+def _jpeg_scans(data: bytes, i: int) -> tuple[int, int | None]:
+    """The scans of a JPEG from byte `i` on, and where the first begins: segment by
+    segment up to the first scan, then every FF DA, since 0xFF is stuffed as FF 00 inside
+    entropy-coded data."""
     for marker, j, _ in _jpeg_segments(data, i):
         if marker == 0xDA:
-            return 1 + data.count(b"\xff\xda", j + 2)
-    return 0
+            return 1 + data.count(b"\xff\xda", j + 2), j
+    return 0, None
 
 
 def check_size(header: ImageHeader, max_pixels: int, max_side: int = 30000) -> None:
-    """Refuse a declared size of zero or over the limits.
+    """Refuse a declared size of zero, over the limits, or more than the file's data can
+    hold.
 
     Parameters
     ----------
@@ -218,6 +227,14 @@ def check_size(header: ImageHeader, max_pixels: int, max_side: int = 30000) -> N
             "too_large",
             f"the image declares {header.width}x{header.height} pixels; the limit is {max_pixels} pixels",
         )
+    # Each 8x8 block of a Huffman-coded JPEG's first component costs at least a bit (its DC
+    # code): 344 bytes that declare 6324x6324 pixels, which cost the decoder 23 ms before
+    # it finds the data missing, are refused from the sizes alone. (Arithmetic coding can
+    # spend less than a bit on a block.)
+    needed = -(-header.width // 8) * -(-header.height // 8) // 8
+    if header.huffman_bytes is not None and header.huffman_bytes < needed:
+        raise ImageError("corrupt", f"the JPEG holds {header.huffman_bytes} bytes of image data; a "
+                         f"{header.width}x{header.height} image needs at least {needed} (truncated or corrupt)")
 
 
 def decode_gray(data: bytes, max_pixels: int, max_side: int = 30000, header: ImageHeader | None = None

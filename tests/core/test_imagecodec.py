@@ -152,3 +152,18 @@ def test_the_header_says_what_decoding_will_hold() -> None:
     rgba16 = read_header(_encode(np.zeros((30, 40, 4), np.uint16), ".png"))
     assert (rgba16.channels, rgba16.sample_bytes) == (4, 2)
     assert rgba16.decode_bytes == 2 * 30 * 40 * 4 * 2 + 30 * 40
+
+
+def test_a_jpeg_too_short_for_its_declared_size_is_refused_before_decoding() -> None:
+    # Every 8x8 block costs at least a bit: 344 bytes cannot hold 6324x6324 pixels.
+    data = _encode(np.zeros((32, 32), np.uint8), ".jpg")
+    sof = data.index(b"\xff\xc0")
+    bomb = data[: sof + 5] + struct.pack(">HH", 6324, 6324) + data[sof + 9 :]
+    with pytest.raises(ImageError, match="needs at least") as refused:
+        decode_gray(bomb, 40_000_000)
+    assert refused.value.kind == "corrupt"
+    # while flat images, the most compressible there are, pass
+    for progressive in (0, 1):
+        flat = cv2.imencode(".jpg", np.full((2000, 2000), 128, np.uint8),
+                            [cv2.IMWRITE_JPEG_PROGRESSIVE, progressive])[1].tobytes()
+        assert decode_gray(flat, 10**7).shape == (2000, 2000)
