@@ -13,11 +13,12 @@ import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 
 from app import __version__, logs
 from app.core.detection import warm_up
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.middleware import ApiKeyGate, BodyLimit, RequestObserver
+from app.middleware import DOCS_ASSETS_URL, ApiKeyGate, BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.schemas import MAX_LISTED_ERRORS, error_summary
@@ -74,7 +75,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    app = FastAPI(
+    # /docs and /redoc with their scripts and styles served from the installed package
+    # (FastAPI's own pages load them from a CDN: blank without internet).
+    app = FastAPIOffline(
+        static_url=DOCS_ASSETS_URL,
         title="fidotrack",
         version=__version__,
         summary="Marker-based camera tracking: learned fiducial detection, automatic survey, "

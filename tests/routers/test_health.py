@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+
+import pytest
 from fastapi.testclient import TestClient
 
 from app.settings import Settings
@@ -41,3 +44,23 @@ def test_server_limits_the_threads_of_one_frame(settings: Settings) -> None:
     with TestClient(create_app(settings.model_copy(update={"compute_threads": 1}))):
         assert cv2.getNumThreads() == 1
         assert all(pool["num_threads"] == 1 for pool in threadpool_info())
+
+
+@pytest.mark.parametrize("api_keys", [False, True])
+@pytest.mark.parametrize("page", ["/docs", "/redoc"])
+def test_docs_pages_load_everything_from_the_service_itself(tmp_path, page: str, api_keys: bool) -> None:  # type: ignore[no-untyped-def]
+    # Offline (a studio network, a laptop on a film set) the pages must still work: every
+    # script, style and image they load comes from the service, keys or not.
+    from app.main import create_app
+
+    with TestClient(create_app(Settings(data_dir=tmp_path / "data", api_keys=api_keys))) as client:
+        html = client.get(page)
+        assert html.status_code == 200
+        sources = re.findall(r'(?:src|href)="([^"]+)"', html.text) + re.findall(r"url: '([^']+)'", html.text)
+        assert sources and all(s.startswith("/") for s in sources), sources
+        assets = [s for s in sources if s.endswith((".js", ".css"))]
+        assert assets
+        for asset in assets:
+            reply = client.get(asset)
+            assert reply.status_code == 200 and len(reply.content) > 10_000, asset
+        assert "https://" not in html.text and "http://" not in html.text
