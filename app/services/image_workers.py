@@ -134,7 +134,8 @@ class ImageWorkers:
         except BrokenProcessPool:
             log.error("an image worker died; starting new ones")
             if self._executor is executor:
-                executor.shutdown(wait=False, cancel_futures=True)
+                executor.shutdown(wait=False, cancel_futures=True)  # its other workers are stopped too
+                self.memory.release_others()
                 self._executor = self._new_executor()
             raise Busy("the image worker processing this request stopped; retry") from None
 

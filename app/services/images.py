@@ -40,8 +40,20 @@ class MemoryBudget:
         self.limit = limit_bytes
         self.wait_s = wait_s
         spawn = multiprocessing.get_context("spawn")
-        self._held = spawn.Value("q", 0, lock=False)  # guarded by the condition's lock
+        self._held = spawn.Value("q", 0, lock=False)  # every process's holdings; guarded by the condition's lock
         self._room = spawn.Condition()
+        self._own = 0  # this process's share of `_held`
+
+    def __getstate__(self) -> dict[str, object]:
+        # A process that receives the budget starts holding nothing of it.
+        return {**self.__dict__, "_own": 0}
+
+    def release_others(self) -> None:
+        """Give back what the other processes held: called when the image workers have
+        died, holding their shares, which would otherwise be lost to the budget."""
+        with self._room:
+            self._held.value = self._own
+            self._room.notify_all()
 
     @property
     def held(self) -> int:
@@ -61,11 +73,13 @@ class MemoryBudget:
                 raise Busy(f"the server is busy with other images (its image memory budget of "
                            f"{self.limit / _MB:.0f} MB is in use); retry")
             self._held.value += nbytes
+            self._own += nbytes
         try:
             yield
         finally:
             with self._room:
                 self._held.value -= nbytes
+                self._own -= nbytes
                 self._room.notify_all()
 
 

@@ -61,3 +61,29 @@ def test_decoded_holds_the_header_cost_while_the_block_runs(tmp_path) -> None:  
     with pytest.raises(Invalid), images.decoded(data[:200] + b"\xff\xd9", settings, memory):
         pass
     assert memory.held == 0
+
+
+def _hold_and_die(memory: images.MemoryBudget, ready: object) -> None:
+    import os
+
+    with memory.hold(70, "a worker's image"):
+        ready.set()  # type: ignore[attr-defined]
+        time.sleep(0.5)
+        os._exit(1)  # killed while holding its share
+
+
+def test_the_shares_of_dead_workers_can_be_given_back() -> None:
+    import multiprocessing
+
+    spawn = multiprocessing.get_context("spawn")
+    memory = images.MemoryBudget(100, wait_s=0.1)
+    ready = spawn.Event()
+    worker = spawn.Process(target=_hold_and_die, args=(memory, ready))
+    worker.start()
+    assert ready.wait(30)
+    with memory.hold(20, "the web process's frame"):
+        worker.join(30)
+        assert memory.held == 90  # the dead worker's 70 are lost to the budget ...
+        memory.release_others()
+        assert memory.held == 20  # ... until they are given back; this process's own stay
+    assert memory.held == 0
