@@ -25,10 +25,10 @@ from app.schemas import MAX_LISTED_ERRORS, error_summary
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
-from app.services.keys import VerifiedKeys
 from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget, limit_compute_threads
 from app.services.jobs import JobRunner
+from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
 from app.services.tracking import TrackingService

@@ -218,7 +218,7 @@ def check_size(header: ImageHeader, max_pixels: int, max_side: int = 30000) -> N
     Raises
     ------
     ImageError
-        "empty" or "too_large".
+        "empty", "too_large", or "corrupt" (a JPEG too short for its size).
     """
     if header.width <= 0 or header.height <= 0:
         raise ImageError("empty", f"the image declares a zero size ({header.width}x{header.height})")
