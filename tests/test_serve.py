@@ -50,6 +50,7 @@ def test_clients_leaving_right_after_the_handshake_leave_no_traceback(tmp_path: 
     # The server's first message (the hello, or the refusal of an unknown environment)
     # goes to a client that has already gone: that is a client leaving, not a fault.
     import socket
+    import struct
 
     from websockets.sync.client import connect
 
@@ -60,10 +61,20 @@ def test_clients_leaving_right_after_the_handshake_leave_no_traceback(tmp_path: 
         env = httpx.post(f"{server.url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
         assert httpx.put(f"{server.url}/environments/{env['id']}/map", json=example_map()).status_code == 200
         ws_url = server.url.replace("http://", "ws://")
+        host, port = server.url.removeprefix("http://").split(":")
         for environment_id in (env["id"], 999) * 5:
-            ws = connect(f"{ws_url}/track?environment_id={environment_id}", open_timeout=5)
-            ws.socket.shutdown(socket.SHUT_RDWR)  # gone at once, without a closing handshake
-            ws.socket.close()
+            # A raw handshake, so no client library closes the socket behind the test's back.
+            with socket.create_connection((host, int(port)), timeout=5) as raw:
+                raw.sendall(
+                    (
+                        f"GET /track?environment_id={environment_id} HTTP/1.1\r\nHost: {host}\r\n"
+                        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+                        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+                    ).encode()
+                )
+                assert raw.recv(4096).startswith(b"HTTP/1.1 101")
+                # gone at once, without a closing handshake: a reset, not a FIN
+                raw.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
         with connect(f"{ws_url}/track?environment_id={env['id']}", open_timeout=5) as ws:
             assert '"hello"' in ws.recv(timeout=5)  # and the server still serves
     text = log.read_text()
