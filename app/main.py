@@ -6,19 +6,21 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from app import __version__, logs
 from app.core.detection import warm_up
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.middleware import DOCS_ASSETS_URL, ApiKeyGate, BodyLimit, RequestObserver
+from app.middleware import DOCS_ASSETS_URL, WEB_APP_URL, ApiKeyGate, BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.schemas import MAX_LISTED_ERRORS, error_summary
@@ -35,6 +37,9 @@ from app.services.tracking import TrackingService
 from app.settings import Settings
 
 log = logging.getLogger("app")
+
+#: The web app's files: plain ES modules and vendored three.js, shipped in the package.
+WEB_DIR = Path(__file__).parent / "web"
 
 
 @asynccontextmanager
@@ -118,6 +123,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(jobs.router)
     app.include_router(track.router)
     app.include_router(keys.router)
+    # The web app: the service's own pages, from the package (html=True serves index.html).
+    app.mount(WEB_APP_URL, StaticFiles(directory=WEB_DIR, html=True), name="web")
+
+    @app.get("/", include_in_schema=False)
+    async def _front_door() -> RedirectResponse:
+        return RedirectResponse(WEB_APP_URL + "/")
+
     return app
 
 

@@ -106,9 +106,13 @@ async def _reply(send: Send, status: int, detail: str, headers: list[tuple[bytes
 
 #: Where the scripts and styles of /docs and /redoc are served.
 DOCS_ASSETS_URL = "/docs-assets"
+#: Where the web app's files are served (`app/web`): pages and scripts, no data; the page
+#: sends the user's key with each API call it makes.
+WEB_APP_URL = "/app"
 #: Paths anyone may call even with keys on: orchestrators' probes carry no keys, and the
 #: API's description (and its pages' assets, under `DOCS_ASSETS_URL`) holds no data.
-OPEN_PATHS = frozenset({"/livez", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+OPEN_PATHS = frozenset({"/", "/livez", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json",
+                        WEB_APP_URL})
 #: What a ``track`` key may do: stream frames, detect and locate.
 TRACK_ROUTES = (("POST", re.compile(r"^/detect/?$")), ("POST", re.compile(r"^/environments/[^/]+/locate/?$")),
                 ("WEBSOCKET", re.compile(r"^/track/?$")))
@@ -117,7 +121,7 @@ WS_POLICY_VIOLATION = 1008
 
 def required_scope(method: str, path: str) -> str | None:
     """The scope a request needs: None (open), ``track``, ``read`` (GET) or ``admin``."""
-    if path in OPEN_PATHS or path.startswith(DOCS_ASSETS_URL + "/"):
+    if path in OPEN_PATHS or path.startswith((DOCS_ASSETS_URL + "/", WEB_APP_URL + "/")):
         return None
     if any(method == m and pattern.match(path) for m, pattern in TRACK_ROUTES):
         return "track"

@@ -15,6 +15,7 @@ Modules:
 * `app.sim.surfaces`: what each pixel sees (point, normal, depth, card or not).
 * `app.sim.lighting`: lamps whose light falls off with distance, glossy card paper.
 * `app.sim.video`: a walk recorded as a phone records it (H.264 through libx264).
+* `app.sim.camera_feed`: a walk as a browser's fake camera plays it (y4m), each frame stamped with its index.
 * `app.sim.examples`: the named example rooms and walks the benchmarks and tests measure on.
 
 The photographs on walls and backgrounds need scikit-image and the video PyAV: ``pip

@@ -1,0 +1,111 @@
+// The map viewer: the surveyed cards in 3D with their ids and precision, the survey's
+// trajectory, a top-down view, and alignment to the world (an origin card, or known
+// points) with its residuals.
+
+import { api } from "./api.js";
+import { notify } from "./app.js";
+import { fixed, h } from "./dom.js";
+import { MapView, STD_SCALE_M } from "./scene.js";
+
+/** A map and what the viewer draws with it: the card layout and the survey's trajectory. */
+export async function loadMap(environmentId) {
+  const [environment, map] = await Promise.all([
+    api("GET", `/environments/${environmentId}`), api("GET", `/environments/${environmentId}/map`)]);
+  const firstId = map.targets.length ? map.targets[0].id : 0;
+  const layout = await api("GET", `/markers/${firstId}?family=${environment.marker_family}`);
+  let trajectory = [];
+  if (map.survey_job_id) {
+    try {
+      const job = await api("GET", `/jobs/${map.survey_job_id}`);
+      trajectory = (job.result?.trajectory || []).filter(Boolean).map((pose) => pose.position);
+    } catch { /* the job was pruned: the map stands without its trajectory */ }
+  }
+  return { environment, map, discsUv: layout.discs, trajectory };
+}
+
+/** Points for a point alignment, one per line: "target disc x y z" (disc 0-3, metres). */
+function parsePoints(text) {
+  return text.split("\n").map((line) => line.trim()).filter((line) => line && !line.startsWith("#")).map((line, i) => {
+    const fields = line.split(/[\s,;]+/).map(Number);
+    if (fields.length !== 5 || fields.some((x) => !Number.isFinite(x))) {
+      throw new Error(`line ${i + 1}: expected "target disc x y z", got "${line}"`);
+    }
+    return { target_id: fields[0], disc: fields[1], world: fields.slice(2) };
+  });
+}
+
+export async function mapPage(view, environmentId, focusId) {
+  const loaded = await loadMap(environmentId);
+  const { environment } = loaded;
+  let { map } = loaded;
+  const container = h("div", { class: "viewer", id: "map-view" });
+  const info = h("div", { id: "map-info" });
+  const residuals = h("div", { id: "alignment-residuals" });
+  view.append(h("h1", {}, `Map: ${environment.name}`), h("div", { class: "grid" }, container, h("div", {}, info)));
+  const viewer = new MapView(container);
+  const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: loaded.trajectory.length,
+                  alignment: null };
+  window.fidotrack.map = state;
+
+  function draw() {
+    viewer.setMap(map, loaded.discsUv);
+    viewer.setTrajectory(map.frame === loaded.map.frame ? loaded.trajectory : []);
+    state.cards = viewer.cards.size;
+    state.ids = [...viewer.cards.keys()].sort((a, b) => a - b);
+    state.frame = map.frame;
+    if (focusId !== undefined) viewer.focusCard(focusId);
+    describe();
+  }
+
+  const originSelect = h("select", { id: "origin-card" });
+  const pointsText = h("textarea", { rows: 5, cols: 34, placeholder: "# target disc x y z (metres)\n3 0 0 0 0\n..." });
+  const allowScale = h("input", { type: "checkbox" });
+
+  async function align(spec) {
+    try {
+      const result = await api("POST", `/environments/${environmentId}/alignment`, spec);
+      state.alignment = { scale: result.scale, rms_m: result.rms_m, residuals: result.residuals };
+      map = result.map;
+      draw();
+      residuals.replaceChildren(
+        h("p", {}, `Scale ${fixed(result.scale, 4)} · RMS ${fixed(result.rms_m * 1000, 2)} mm`),
+        result.residuals.length ? h("table", {}, h("tr", {}, h("th", {}, "card"), h("th", {}, "disc"), h("th", {}, "residual (mm)")),
+          result.residuals.map((r) => h("tr", {}, h("td", {}, String(r.target_id)), h("td", {}, String(r.disc)),
+                                                h("td", {}, fixed(r.residual_m * 1000, 2))))) : "");
+    } catch (error) { notify(error.message); }
+  }
+
+  function describe() {
+    const worst = [...viewer.cards.entries()].filter(([, card]) => Number.isFinite(card.std))
+      .sort((a, b) => b[1].std - a[1].std).slice(0, 5);
+    originSelect.replaceChildren(...state.ids.map((id) => h("option", { value: id }, `card ${id}`)));
+    info.replaceChildren(
+      h("div", { class: "panel" },
+        h("p", {}, h("b", { id: "card-count" }, String(state.cards)), " cards · frame ", h("b", {}, map.frame),
+          map.rms_px ? ` · survey RMS ${fixed(map.rms_px, 2)} px` : "",
+          loaded.trajectory.length ? ` · ${loaded.trajectory.length} survey frames` : ""),
+        h("p", { class: "muted" }, `Colour: each card's largest disc standard deviation, green ${STD_SCALE_M[0] * 1000} mm `,
+          `to red ${STD_SCALE_M[1] * 1000} mm. Drag to orbit, right-drag to pan, scroll to zoom.`),
+        worst.length ? h("p", {}, "Least precise: ", worst.map(([id, card]) => h("a", { class: "chip", onclick: () => viewer.focusCard(id) },
+          `${id}: ${fixed(card.std * 1000, 2)} mm`))) : h("p", { class: "muted" }, "The map gives no precision."),
+        h("div", {}, h("button", { class: "secondary", onclick: () => viewer.topDown() }, "Top down"), " ",
+          h("button", { class: "secondary", onclick: () => viewer.perspective() }, "Perspective"), " ",
+          h("a", { href: `#/environments/${environmentId}/track` }, "Track a camera"))),
+      h("div", { class: "panel", style: "margin-top:1rem" },
+        h("h2", {}, "Align to the world"),
+        h("form", { class: "inline", onsubmit: (event) => {
+          event.preventDefault();
+          align({ origin_target_id: Number(originSelect.value) });
+        } }, h("label", {}, "Origin card (its plane becomes z = 0)", originSelect), h("button", {}, "Set origin")),
+        h("form", { onsubmit: (event) => {
+          event.preventDefault();
+          try { align({ points: parsePoints(pointsText.value), allow_scale: allowScale.checked }); }
+          catch (error) { notify(error.message); }
+        } }, h("label", {}, "Known disc positions", pointsText),
+          h("label", {}, h("span", {}, allowScale, " fit the scale too")), h("button", {}, "Fit")),
+        residuals));
+  }
+
+  draw();
+  return () => viewer.dispose();
+}
