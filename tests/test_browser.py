@@ -4,13 +4,22 @@ user on a network without internet sees."""
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
+import numpy as np
 import pytest
+
+from app.core.geometry import Pose
 
 from tests.conftest import running_server
 
@@ -19,13 +28,18 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium: apt-ge
 
 
 @pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
+def playwright() -> Iterator[Any]:
     from playwright.sync_api import sync_playwright
 
-    with sync_playwright() as playwright:
-        launched = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
-        yield launched
-        launched.close()
+    with sync_playwright() as driver:
+        yield driver
+
+
+@pytest.fixture(scope="module")
+def browser(playwright: Any) -> Iterator[Any]:
+    launched = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+    yield launched
+    launched.close()
 
 
 def _offline_page(browser: Any, origin: str, offsite: list[str]) -> Any:
@@ -60,3 +74,215 @@ def test_docs_and_redoc_render_every_operation_without_internet(tmp_path: Path, 
         page.wait_for_selector("text=Find and identify the targets in a JPEG or PNG image.", timeout=30_000)
         # ReDoc's bundle asks its maker's site for its logo: decoration, nothing the page needs.
         assert all(url.endswith((".svg", ".png")) for url in offsite), offsite
+
+
+# --------------------------------------------------------------------------------------
+# The web app
+# --------------------------------------------------------------------------------------
+
+#: Where the tests keep their screenshots (CI keeps the directory as the run's artifacts).
+ARTIFACTS = Path(os.environ.get("FIDOTRACK_TEST_ARTIFACTS", Path(__file__).resolve().parents[1] / "test-artifacts"))
+
+
+def _watched_page(browser: Any, **context: Any) -> tuple[Any, list[str]]:
+    """A page whose script errors are collected: a page that throws fails its test."""
+    page = browser.new_context(viewport={"width": 1300, "height": 900}, **context).new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    return page, errors
+
+
+def _screenshot(page: Any, name: str) -> Path:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS / f"{name}.png"
+    page.screenshot(path=str(path))
+    return path
+
+
+@dataclass
+class StampedWalk:
+    """A tracking walk of the bench room as the fake camera plays it, with its truth."""
+
+    y4m: Path
+    frames: list[np.ndarray]  # stamped grey frames, in walk order
+    truth: list[Pose]
+    map_document: dict
+
+
+@pytest.fixture(scope="module")
+def stamped_walk(tmp_path_factory: pytest.TempPathFactory) -> StampedWalk:
+    from app.sim import BENCH_CAMERA, BENCH_ROOM, render_walk
+    from app.sim.camera_feed import stamp_frame_index, write_y4m
+
+    room = BENCH_ROOM.walk(3, 60, kind="tracking")
+    frames = [stamp_frame_index(image, k) for k, (image, _) in
+              enumerate(render_walk(room.scene, BENCH_CAMERA, room.poses, room.rng, degradation="default"))]
+    path = tmp_path_factory.mktemp("camera") / "walk.y4m"
+    write_y4m(path, frames, fps=30)
+    return StampedWalk(path, frames, list(room.poses), room.scene.map_document(BENCH_CAMERA))
+
+
+def _errors_mm(replies: list[dict], indices: list[int | None], truth: list[Pose]) -> np.ndarray:
+    """Position error of each posed reply against the truth of the walk frame it showed."""
+    return np.array([1000 * np.linalg.norm(np.asarray(r["pose"]["position"]) - truth[indices[r["seq"]]].position)
+                     for r in replies if r["pose"] is not None and indices[r["seq"]] is not None])
+
+
+def _track_directly(url: str, frames: list[np.ndarray], quality: int = 85) -> list[dict]:
+    """The same frames sent by a Python client in lock-step: the replies."""
+    from websockets.sync.client import connect
+
+    replies = []
+    with connect(url, open_timeout=10, max_size=None) as ws:
+        assert json.loads(ws.recv(timeout=10))["type"] == "hello"
+        for frame in frames:
+            ws.send(cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes())
+            replies.append(json.loads(ws.recv(timeout=30)))
+    return replies
+
+
+def test_live_tracking_from_the_browser_camera_gives_the_poses_track_gives(tmp_path: Path, playwright: Any,
+                                                                         stamped_walk: StampedWalk) -> None:
+    # Chromium's fake camera plays the rendered walk; the page encodes what it shows and
+    # streams it to /track. Each frame sent carries its walk index, read back from the
+    # bytes on the wire, so every pose the page reports is checked against the truth.
+    from app.sim.camera_feed import read_frame_index
+
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        env = httpx.post(f"{server.url}/environments", json={"name": "bench room", "marker_size_m": 0.2}).json()
+        httpx.put(f"{server.url}/environments/{env['id']}/map", json=stamped_walk.map_document).raise_for_status()
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=[
+            "--no-sandbox", "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
+            f"--use-file-for-fake-video-capture={stamped_walk.y4m}"])
+        try:
+            page, errors = _watched_page(browser, permissions=["camera"])
+            sent: list[bytes] = []
+            page.on("websocket", lambda ws: ws.on(
+                "framesent", lambda payload: sent.append(payload) if isinstance(payload, bytes) else None))
+            page.goto(f"{server.url}/app/#/environments/{env['id']}/track")
+            page.click("#start")
+            page.wait_for_function("window.fidotrack.track.replies.length >= 60", timeout=60_000)
+            page.click("#start")  # stop
+            state = page.evaluate("window.fidotrack.track")
+            stats = page.locator("#track-stats").inner_text()
+            _screenshot(page, "track")
+        finally:
+            browser.close()
+        url = server.url.replace("http://", "ws://") + f"/track?environment_id={env['id']}"
+        direct = _track_directly(url, stamped_walk.frames)
+
+    assert errors == [] and state["errors"] == []
+    replies = state["replies"]
+    assert [r["seq"] for r in replies] == list(range(len(replies)))  # lock-step: every frame answered
+    assert all(r["dropped"] == 0 for r in replies)
+    indices = [read_frame_index(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)) for data in sent]
+    assert all(i is not None for i in indices)
+    assert len(set(indices)) >= 20  # the camera's picture moved on: the walk was played, not one frame
+    with_targets = [r for r in replies if r["targets"]]
+    assert len(with_targets) >= 0.5 * len(replies)
+    assert sum(r["pose"] is not None for r in with_targets) >= 0.9 * len(with_targets)
+    page_mm = _errors_mm(replies, indices, stamped_walk.truth)
+    direct_mm = _errors_mm([{"seq": k, **r} for k, r in enumerate(direct)], list(range(len(direct))),
+                           stamped_walk.truth)
+    # The browser's own JPEG of the same picture: poses as accurate as the frames sent directly.
+    assert np.median(page_mm) <= 1.5 * np.median(direct_mm) + 0.5, (np.median(page_mm), np.median(direct_mm))
+    assert np.quantile(page_mm, 0.9) <= 1.5 * np.quantile(direct_mm, 0.9) + 1.0
+    assert "fps" in stats and "latency p50" in stats
+
+
+def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: Path, browser: Any) -> None:
+    from app.sim import SMALL_ROOM, render_walk
+
+    room = SMALL_ROOM.walk(5, 90, kind="calibration")
+    video = tmp_path / "room.avi"
+    size = (SMALL_ROOM.camera.width, SMALL_ROOM.camera.height)
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, size)
+    for image, _ in render_walk(room.scene, SMALL_ROOM.camera, room.poses, room.rng, degradation="none"):
+        writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        page, errors = _watched_page(browser)
+        page.goto(f"{server.url}/app/")
+        page.fill("input[name=name]", "small room")
+        page.fill("input[name=marker_size_mm]", str(1000 * SMALL_ROOM.marker_size_m))
+        page.click("button:text-is('Create')")
+        page.wait_for_function("location.hash.endsWith('/survey')")
+        page.set_input_files("input[name=video]", str(video))
+        page.click("button:text-is('Upload and survey')")
+        # The job's progress is shown live: record what the page shows while it runs.
+        seen: list[float] = []
+        for _ in range(600):
+            job = page.evaluate("window.fidotrack.survey.job")
+            if job is not None:
+                seen.append(job["progress"])
+                if job["status"] in ("succeeded", "failed", "cancelled"):
+                    break
+            page.wait_for_timeout(250)
+        assert job is not None and job["status"] == "succeeded", job
+        assert page.evaluate("window.fidotrack.survey.upload.done")
+        assert len(set(seen)) >= 3 and seen == sorted(seen)  # several stages of progress, never backwards
+        result_text = page.locator("#survey-result").inner_text()
+        assert f"{job['result']['n_targets']} cards mapped" in result_text
+        shown = page.locator("#survey-result ul.warnings li").count()
+        assert shown == len(job["result"]["warnings"])
+        page.click("text=Open the map")
+        page.wait_for_function("window.fidotrack.map && window.fidotrack.map.cards > 0", timeout=30_000)
+        state = page.evaluate("window.fidotrack.map")
+        mapped = httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()
+        assert state["ids"] == sorted(t["id"] for t in mapped["targets"])
+        assert state["trajectory"] == sum(p is not None for p in job["result"]["trajectory"])
+        _screenshot(page, "map")
+        # Align to the world with the first card as origin: the viewer redraws the aligned map.
+        page.select_option("#origin-card", str(state["ids"][0]))
+        page.click("button:text-is('Set origin')")
+        page.wait_for_function("window.fidotrack.map.frame === 'world'", timeout=10_000)
+        assert httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()["frame"] == "world"
+        assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
+    assert errors == []
+
+
+def test_the_detection_check_draws_the_targets_of_a_chosen_image(tmp_path: Path, browser: Any) -> None:
+    from app.sim.scenes import scenario_frame
+
+    image, truth = scenario_frame("default", np.random.default_rng(2))
+    path = tmp_path / "cards.png"
+    cv2.imwrite(str(path), image)
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        page, errors = _watched_page(browser)
+        page.goto(f"{server.url}/app/#/detect")
+        page.set_input_files("#detect-file", str(path))
+        page.wait_for_function("window.fidotrack.detect.result !== null", timeout=30_000)
+        result = page.evaluate("window.fidotrack.detect.result")
+        _screenshot(page, "detect")
+        expected = httpx.post(f"{server.url}/detect", content=path.read_bytes(),
+                              headers={"Content-Type": "image/png"}).json()
+    assert sorted(t["id"] for t in result["targets"]) == sorted(t["id"] for t in expected["targets"])
+    assert {t["id"] for t in result["targets"]} <= {t.id for t in truth.visible_targets()}
+    assert len(result["targets"]) >= 1 and len(result["candidates"]) >= 4 * len(result["targets"])
+    assert errors == []
+
+
+def test_the_pages_show_the_services_errors_and_use_the_key_typed_in(tmp_path: Path, browser: Any,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FIDOTRACK_API_KEYS", "true")
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        created = subprocess.run([str(Path(sys.executable).with_name("fidotrack")), "keys", "create", "--name", "web",
+                                  "--scopes", "read,track,admin"], env={**os.environ, "FIDOTRACK_DATA_DIR": str(tmp_path / "data")},
+                                 capture_output=True, text=True, check=True)
+        key = created.stdout.split()[-1]
+        page, errors = _watched_page(browser)
+        page.goto(f"{server.url}/app/")  # the page itself needs no key
+        notice = page.locator("#notice")
+        notice.wait_for(state="visible")
+        assert "401" in notice.inner_text()
+        page.fill("#api-key", key)
+        page.press("#api-key", "Enter")
+        page.wait_for_selector("text=No environment yet")
+        assert notice.is_hidden()
+        page.fill("input[name=name]", "lab")
+        page.click("button:text-is('Create')")
+        page.wait_for_function("location.hash.endsWith('/survey')")
+        page.goto(f"{server.url}/app/#/environments/1/map")  # no map yet: the service says so
+        notice.wait_for(state="visible")
+        assert "404" in notice.inner_text() and "map" in notice.inner_text()
+    assert errors == []

@@ -59,6 +59,9 @@ def test_survey_of_a_rendered_room_gives_its_camera_and_discs(client: TestClient
     result = body["result"]
     assert result["n_registered"] >= 50 and result["rms_px"] < 0.5
     assert len(result["trajectory"]) == result["frames_used"]
+    # The warnings about parts of the map name their cards (the web app shows them against the cards).
+    for warning in result["card_warnings"]:
+        assert warning["message"] in result["warnings"] and warning["target_ids"], warning
 
     document = client.get(f"/environments/{env}/map").json()
     assert document["frame"] == "survey" and document["survey_job_id"] == job["id"]

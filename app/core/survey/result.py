@@ -66,6 +66,7 @@ class SurveyResult:
     scale_residual_m: float  # RMS of the card disc-distance residuals after scaling
     timing_s: dict[str, float] = field(default_factory=dict)
     intrinsics_std: np.ndarray | None = None  # (5,) 1 sigma of [f, cx, cy, k1, k2] (px, px, px, -, -); None: fixed
+    map_warnings: list[MapWarning] = field(default_factory=list)  # the warnings that name cards, typed
 
     @property
     def n_registered(self) -> int:
@@ -122,7 +123,9 @@ class SurveyResult:
         -------
         dict
             Frames, registered frames, targets, RMS, the lens and its standard deviations
-            (``intrinsics_std``: None when the intrinsics were given), warnings and timing.
+            (``intrinsics_std``: None when the intrinsics were given), warnings (every one
+            as text; ``card_warnings``: those about parts of the map, with their kind and
+            the ids of the cards they name) and timing.
         """
         std = self.intrinsics_std
 
@@ -141,6 +144,8 @@ class SurveyResult:
                 "focal_px": number(std[0]), "principal_point_px": [number(std[1]), number(std[2])],
                 "k1": number(std[3]), "k2": number(std[4])},
             "warnings": list(self.warnings),
+            "card_warnings": [{"kind": w.kind.value, "target_ids": list(w.target_ids), "message": w.message}
+                              for w in self.map_warnings],
             "timing_s": dict(self.timing_s),
         }
 
@@ -215,36 +220,6 @@ def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, s
                       MIN_BASELINE_DEG, frame_groups)
 
 
-def map_warnings(results: list[SurveyedTarget], tracks: Tracks, views: Views, surveyed: SurveyedViews,
-                 camera_centres: np.ndarray | None = None, frame_groups: np.ndarray | None = None) -> list[str]:
-    """Warnings about weak parts of the map, for the user: what is weak and what to film.
-
-    Parameters
-    ----------
-    results : list of SurveyedTarget
-        The surveyed targets, in the order of ``surveyed.targets``.
-    tracks : Tracks
-        The observations.
-    views : Views
-        Every view.
-    surveyed : SurveyedViews
-        The views the map rests on.
-    camera_centres : (F, 3) ndarray, optional
-        The registered cameras' centres; without them no pure pan is told.
-    frame_groups : (F,) ndarray of int, optional
-        Frames linked by feature points (`features.feature_groups`); default: none.
-
-    Returns
-    -------
-    list of str
-        The messages of `map_advice_of`: a pure pan; each card seen in fewer than
-        ``MIN_VIEWS`` frames or over less than ``MIN_BASELINE_DEG``; the cards detected
-        but not surveyed; each part of the map not seen together with the rest (only
-        linked through camera motion) with its nearest mapped neighbours.
-    """
-    return [w.message for w in map_advice_of(results, tracks, views, surveyed, camera_centres, frame_groups)]
-
-
 def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews, scale: MetricScale,
                   used_frames: list[int], n_input_frames: int) -> SurveyResult:
     """The result of a survey: the scaled map, its uncertainty, the trajectory, warnings.
@@ -252,7 +227,7 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     Parameters
     ----------
     state : SurveyState
-        The survey after scaling; its warnings get the map's (`map_warnings`).
+        The survey after scaling; its warnings get the map's (`map_advice_of`).
     info : BundleInfo
         The last bundle adjustment, with its covariance.
     surveyed : SurveyedViews
@@ -284,7 +259,8 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         results.append(SurveyedTarget(int(tracks.ids[t]), X.copy(), std[4 * t : 4 * t + 4].copy(),
                                       len(frames_t), angle, distance))
     camera_centres = np.array([rec.pose(f).position for f in np.flatnonzero(registered)]).reshape(-1, 3)
-    state.warnings += map_warnings(results, tracks, views, surveyed, camera_centres, feature_groups(state))
+    advice = map_advice_of(results, tracks, views, surveyed, camera_centres, feature_groups(state))
+    state.warnings += [w.message for w in advice]
     lens_std = info.intrinsics_std()
     warning = lens_warning(lens_std)
     if warning is not None:
@@ -298,4 +274,5 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
         n_observations=len(info.obs), n_rejected_views=surveyed.n_rejected,
         scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s, intrinsics_std=lens_std,
+        map_warnings=advice,
     )

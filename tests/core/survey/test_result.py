@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.survey.advice import WarningKind
 from app.core.survey.bundle import bundle_adjust
 from app.core.survey.result import (
     MIN_VIEWS,
     SurveyedViews,
     SurveyResult,
-    map_warnings,
+    map_advice_of,
     survey_result,
     surveyed_views,
 )
@@ -79,8 +80,10 @@ def test_parts_of_the_map_seen_apart_are_flagged(true_state: SurveyState) -> Non
             if views.target[v] != t:
                 true_state.usable[v] = False
     result, surveyed = _result(true_state, list(range(true_state.tracks.n_frames)), true_state.tracks.n_frames)
-    assert any("not seen together with the rest" in w and f": card {int(true_state.tracks.ids[t])};" in w
-               for w in map_warnings(result.targets, true_state.tracks, views, surveyed))
+    card = int(true_state.tracks.ids[t])
+    assert any("not seen together with the rest" in w.message and f": card {card};" in w.message
+               and w.kind is WarningKind.DISCONNECTED and card in w.target_ids
+               for w in map_advice_of(result.targets, true_state.tracks, views, surveyed))
 
 
 def test_nothing_seen_twice_cannot_be_surveyed(true_state: SurveyState) -> None:
