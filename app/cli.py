@@ -33,6 +33,9 @@ def _serve(args: argparse.Namespace) -> int:
     from app.settings import Settings
 
     settings = Settings()
+    if (settings.tls_certfile is None) != (settings.tls_keyfile is None):
+        print("fidotrack serve: TLS needs both FIDOTRACK_TLS_CERTFILE and FIDOTRACK_TLS_KEYFILE", file=sys.stderr)
+        return 2
     uvicorn.run(
         "app.main:app",
         host=args.host or settings.host,
@@ -45,6 +48,8 @@ def _serve(args: argparse.Namespace) -> int:
         # get the frame_too_large error and the connection stays open.
         ws_max_size=ws_message_limit(settings),
         proxy_headers=True,
+        ssl_certfile=settings.tls_certfile,
+        ssl_keyfile=settings.tls_keyfile,
     )
     return 0
 

@@ -24,6 +24,10 @@ class Settings(BaseSettings):
     )
     host: str = Field("127.0.0.1", description="Address where `fidotrack serve` listens.")
     port: int = Field(8000, ge=1, le=65535, description="Port where `fidotrack serve` listens.")
+    tls_certfile: Path | None = Field(None, description=(
+        "PEM certificate (chain) for `fidotrack serve` to serve https and wss itself; with `tls_keyfile`. "
+        "Browsers give a page the camera only over https or on localhost."))
+    tls_keyfile: Path | None = Field(None, description="PEM private key of `tls_certfile`.")
     sqlite_busy_timeout_ms: int = Field(
         5000, ge=0, description="SQLite busy timeout, ms: how long a write waits for another writer's lock.")
 

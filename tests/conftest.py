@@ -106,11 +106,13 @@ def start_server(data_dir: Path, log: Path, *, port: int | None = None,
     env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port)}
     with log.open("ab") as out:
         process = subprocess.Popen(list(command), env=env, stdout=out, stderr=subprocess.STDOUT)
-    server = Server(process, f"http://127.0.0.1:{port}", log)
+    # With FIDOTRACK_TLS_CERTFILE set the server speaks https (the tests' certificates are self-signed).
+    scheme = "https" if env.get("FIDOTRACK_TLS_CERTFILE") else "http"
+    server = Server(process, f"{scheme}://127.0.0.1:{port}", log)
     deadline = time.monotonic() + 60
     while True:
         try:
-            if httpx.get(f"{server.url}/readyz", timeout=1).status_code == 200:
+            if httpx.get(f"{server.url}/readyz", timeout=1, verify=False).status_code == 200:
                 return server
         except httpx.TransportError:
             pass

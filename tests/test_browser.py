@@ -122,6 +122,13 @@ def stamped_walk(tmp_path_factory: pytest.TempPathFactory) -> StampedWalk:
     return StampedWalk(path, frames, list(room.poses), room.scene.map_document(BENCH_CAMERA))
 
 
+def _camera_browser(playwright: Any, y4m: Path) -> Any:
+    """Chromium whose camera plays `y4m` (in a loop), granted to every page without asking."""
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=[
+        "--no-sandbox", "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
+        f"--use-file-for-fake-video-capture={y4m}"])
+
+
 def _errors_mm(replies: list[dict], indices: list[int | None], truth: list[Pose]) -> np.ndarray:
     """Position error of each posed reply against the truth of the walk frame it showed."""
     return np.array([1000 * np.linalg.norm(np.asarray(r["pose"]["position"]) - truth[indices[r["seq"]]].position)
@@ -151,9 +158,7 @@ def test_live_tracking_from_the_browser_camera_gives_the_poses_track_gives(tmp_p
     with running_server(tmp_path / "data", tmp_path / "server.log") as server:
         env = httpx.post(f"{server.url}/environments", json={"name": "bench room", "marker_size_m": 0.2}).json()
         httpx.put(f"{server.url}/environments/{env['id']}/map", json=stamped_walk.map_document).raise_for_status()
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=[
-            "--no-sandbox", "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
-            f"--use-file-for-fake-video-capture={stamped_walk.y4m}"])
+        browser = _camera_browser(playwright, stamped_walk.y4m)
         try:
             page, errors = _watched_page(browser, permissions=["camera"])
             sent: list[bytes] = []
@@ -286,3 +291,53 @@ def test_the_pages_show_the_services_errors_and_use_the_key_typed_in(tmp_path: P
         notice.wait_for(state="visible")
         assert "404" in notice.inner_text() and "map" in notice.inner_text()
     assert errors == []
+
+
+def _lan_address() -> str | None:
+    """This machine's address on its network (what a phone would connect to), if it has one."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("192.0.2.123", 9))  # no packet is sent: this only picks the route
+        except OSError:
+            return None
+        address = probe.getsockname()[0]
+    return None if address.startswith("127.") else address
+
+
+def test_a_phone_on_the_network_gets_the_camera_over_https(tmp_path: Path, playwright: Any,
+                                                           stamped_walk: StampedWalk,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    # Browsers give a page the camera only in a secure context: https, or localhost. From
+    # another machine, plain http must say so; `fidotrack serve` with a certificate works.
+    address = _lan_address()
+    if address is None or shutil.which("openssl") is None:
+        pytest.skip("needs a network address and openssl")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj",
+                    f"/CN={address}", "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
+    monkeypatch.setenv("FIDOTRACK_HOST", "0.0.0.0")
+    browser = _camera_browser(playwright, stamped_walk.y4m)
+    try:
+        with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+            env = httpx.post(f"{server.url}/environments", json={"name": "bench room", "marker_size_m": 0.2}).json()
+            httpx.put(f"{server.url}/environments/{env['id']}/map", json=stamped_walk.map_document).raise_for_status()
+            page, plain_errors = _watched_page(browser, permissions=["camera"])
+            page.goto(server.url.replace("127.0.0.1", address) + f"/app/#/environments/{env['id']}/track")
+            page.click("#start")
+            page.locator("#notice").wait_for(state="visible")
+            assert "https" in page.locator("#notice").inner_text()
+            assert page.evaluate("window.fidotrack.track.sent") == 0
+        monkeypatch.setenv("FIDOTRACK_TLS_CERTFILE", str(cert))
+        monkeypatch.setenv("FIDOTRACK_TLS_KEYFILE", str(key))
+        with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+            assert server.url.startswith("https://")
+            page, errors = _watched_page(browser, permissions=["camera"], ignore_https_errors=True)
+            page.goto(server.url.replace("127.0.0.1", address) + f"/app/#/environments/{env['id']}/track")
+            page.click("#start")
+            page.wait_for_function("window.fidotrack.track.replies.filter(r => r.pose).length >= 5", timeout=60_000)
+            assert page.evaluate("window.fidotrack.track.errors") == []
+    finally:
+        browser.close()
+    assert plain_errors == [] and errors == []

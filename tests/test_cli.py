@@ -1,4 +1,4 @@
-"""The ``fidotrack markers`` command writes printable sheets offline."""
+"""The ``fidotrack`` command: ``markers`` writes printable sheets offline; ``serve`` checks its settings."""
 
 from __future__ import annotations
 
@@ -27,3 +27,10 @@ def test_markers_refuses_bad_arguments(
     assert main(["markers", *args, "-o", str(out), "-q"]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_serve_refuses_a_certificate_without_its_key(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FIDOTRACK_TLS_CERTFILE", str(tmp_path / "cert.pem"))
+    assert main(["serve"]) == 2
+    assert "FIDOTRACK_TLS_KEYFILE" in capsys.readouterr().err
