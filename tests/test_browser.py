@@ -213,6 +213,8 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         page.click("button:text-is('Create')")
         page.wait_for_function("location.hash.endsWith('/survey')")
         page.set_input_files("input[name=video]", str(video))
+        # 30 of the 90 frames: a thin survey, so that it warns about some cards.
+        page.fill("#survey-frames", "30")
         page.click("button:text-is('Upload and survey')")
         # The job's progress is shown live: record what the page shows while it runs.
         seen: list[float] = []
@@ -228,12 +230,22 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         assert len(set(seen)) >= 3 and seen == sorted(seen)  # several stages of progress, never backwards
         result_text = page.locator("#survey-result").inner_text()
         assert f"{job['result']['n_targets']} cards mapped" in result_text
-        shown = page.locator("#survey-result ul.warnings li").count()
-        assert shown == len(job["result"]["warnings"])
+        # Every warning is listed; those about cards carry a link to each card they name.
+        assert page.locator("#survey-result ul.warnings li").count() == len(job["result"]["warnings"]) > 0
+        chips = page.locator("#survey-result a.chip")
+        named = [i for w in job["result"]["card_warnings"] for i in w["target_ids"]]
+        assert chips.all_inner_texts() == [f"card {i}" for i in named] and named
+        mapped = httpx.get(f"{server.url}/environments/{job['environment_id']}/map").json()
+        in_map = [i for i in named if i in {t["id"] for t in mapped["targets"]}]
+        if in_map:  # a card the survey mapped weakly: its link opens the map looking at it
+            chips.nth(named.index(in_map[0])).click()
+            page.wait_for_function(f"window.fidotrack.map && window.fidotrack.map.focused === {in_map[0]}",
+                                   timeout=30_000)
+            page.go_back()
         page.click("text=Open the map")
-        page.wait_for_function("window.fidotrack.map && window.fidotrack.map.cards > 0", timeout=30_000)
+        page.wait_for_function("window.fidotrack.map && window.fidotrack.map.cards > 0 && "
+                               "window.fidotrack.map.focused === null", timeout=30_000)
         state = page.evaluate("window.fidotrack.map")
-        mapped = httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()
         assert state["ids"] == sorted(t["id"] for t in mapped["targets"])
         assert state["trajectory"] == sum(p is not None for p in job["result"]["trajectory"])
         _screenshot(page, "map")

@@ -13,6 +13,7 @@ const ROUTES = [
   [/^#\/environments$/, environmentsPage],
   [/^#\/environments\/(\d+)\/survey$/, surveyPage],
   [/^#\/environments\/(\d+)\/map$/, mapPage],
+  [/^#\/environments\/(\d+)\/map\/(\d+)$/, mapPage],  // the map, looking at one card
   [/^#\/environments\/(\d+)\/track$/, trackPage],
   [/^#\/detect$/, detectPage],
 ];

@@ -44,7 +44,7 @@ export async function mapPage(view, environmentId, focusId) {
   view.append(h("h1", {}, `Map: ${environment.name}`), h("div", { class: "grid" }, container, h("div", {}, info)));
   const viewer = new MapView(container);
   const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: loaded.trajectory.length,
-                  alignment: null };
+                  alignment: null, focused: null };
   window.fidotrack.map = state;
 
   function draw() {
@@ -53,8 +53,11 @@ export async function mapPage(view, environmentId, focusId) {
     state.cards = viewer.cards.size;
     state.ids = [...viewer.cards.keys()].sort((a, b) => a - b);
     state.frame = map.frame;
-    if (focusId !== undefined) viewer.focusCard(focusId);
     describe();
+    if (focusId !== undefined) {
+      state.focused = viewer.focusCard(focusId) ? focusId : null;
+      if (state.focused === null) notify(`Card ${focusId} is not in the map: the survey's warnings say why.`);
+    }
   }
 
   const originSelect = h("select", { id: "origin-card" });

@@ -7,6 +7,7 @@ import { notify } from "./app.js";
 import { fixed, h } from "./dom.js";
 
 const POLL_MS = 500;
+/** Where the page remembers the environment's last survey job, to follow it or show it again. */
 const jobKey = (environmentId) => `fidotrack.surveyJob.${environmentId}`;
 
 function duration(seconds) {
@@ -43,7 +44,7 @@ export async function surveyPage(view, environmentId) {
 
   const file = h("input", { type: "file", name: "video", accept: "video/*,.mp4,.mov,.avi", required: true });
   const size = h("input", { type: "number", min: 10, step: "any", value: environment.marker_size_m * 1000 });
-  const maxFrames = h("input", { type: "number", min: 2, placeholder: "default" });
+  const maxFrames = h("input", { type: "number", min: 2, placeholder: "default", id: "survey-frames" });
   const features = h("input", { type: "checkbox" });
   const uploadBar = h("progress", { max: 1, value: 0 });
   const uploadText = h("span", { class: "muted" }, "");
@@ -96,8 +97,7 @@ export async function surveyPage(view, environmentId) {
         jobText.textContent = `${job.status} · ${job.stage}`;
         cancel.disabled = true;
         start.disabled = false;
-        sessionStorage.removeItem(jobKey(environmentId));
-        showResult(job);
+        showResult(job);  // (the job stays remembered: coming back to the page shows the last survey)
         return;
       }
       await new Promise((resolve) => { timer = setTimeout(resolve, POLL_MS); });
