@@ -195,24 +195,44 @@ def test_live_tracking_from_the_browser_camera_gives_the_poses_track_gives(tmp_p
     assert "fps" in stats and "latency p50" in stats
 
 
-def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: Path, browser: Any) -> None:
+@dataclass
+class SurveyVideo:
+    """A calibration walk of the small example room as a video file, with the room's truth."""
+
+    path: Path
+    scene: Any  # app.sim.scenes.Scene
+    marker_size_m: float
+
+
+@pytest.fixture(scope="module")
+def survey_video(tmp_path_factory: pytest.TempPathFactory) -> SurveyVideo:
     from app.sim import SMALL_ROOM, render_walk
 
     room = SMALL_ROOM.walk(5, 90, kind="calibration")
-    video = tmp_path / "room.avi"
+    path = tmp_path_factory.mktemp("survey") / "room.avi"
     size = (SMALL_ROOM.camera.width, SMALL_ROOM.camera.height)
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, size)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, size)
     for image, _ in render_walk(room.scene, SMALL_ROOM.camera, room.poses, room.rng, degradation="none"):
         writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
     writer.release()
+    return SurveyVideo(path, room.scene, SMALL_ROOM.marker_size_m)
+
+
+def _survey_page(page: Any, server_url: str, video: SurveyVideo) -> None:
+    """Create an environment through the page and choose the video on its survey page."""
+    page.goto(f"{server_url}/app/")
+    page.fill("input[name=name]", "small room")
+    page.fill("input[name=marker_size_mm]", str(1000 * video.marker_size_m))
+    page.click("button:text-is('Create')")
+    page.wait_for_function("location.hash.endsWith('/survey')")
+    page.set_input_files("input[name=video]", str(video.path))
+
+
+def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: Path, browser: Any,
+                                                                     survey_video: SurveyVideo) -> None:
     with running_server(tmp_path / "data", tmp_path / "server.log") as server:
         page, errors = _watched_page(browser)
-        page.goto(f"{server.url}/app/")
-        page.fill("input[name=name]", "small room")
-        page.fill("input[name=marker_size_mm]", str(1000 * SMALL_ROOM.marker_size_m))
-        page.click("button:text-is('Create')")
-        page.wait_for_function("location.hash.endsWith('/survey')")
-        page.set_input_files("input[name=video]", str(video))
+        _survey_page(page, server.url, survey_video)
         # 30 of the 90 frames: a thin survey, so that it warns about some cards.
         page.fill("#survey-frames", "30")
         page.click("button:text-is('Upload and survey')")
@@ -255,6 +275,31 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         page.wait_for_function("window.fidotrack.map.frame === 'world'", timeout=10_000)
         assert httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()["frame"] == "world"
         assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
+        # Or known points: four discs at their true places in the room; the residuals are shown.
+        truth = {t.id: t.discs for t in survey_video.scene.targets}
+        lines = [f"{i} {d} " + " ".join(f"{x:.5f}" for x in truth[i][d]) for i, d in zip(state["ids"][:4], (0, 1, 2, 3))]
+        page.fill("textarea", "\n".join(["# target disc x y z", *lines]))
+        page.click("button:text-is('Fit')")
+        page.wait_for_function("window.fidotrack.map.alignment && window.fidotrack.map.alignment.residuals.length === 4")
+        alignment = page.evaluate("window.fidotrack.map.alignment")
+        assert alignment["scale"] == 1.0 and alignment["rms_m"] < 0.005  # rigid: the survey's metric scale kept
+        assert page.locator("#alignment-residuals tr").count() == 1 + 4
+    assert errors == []
+
+
+def test_a_survey_cancelled_from_the_page_keeps_the_old_map(tmp_path: Path, browser: Any,
+                                                            survey_video: SurveyVideo) -> None:
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        page, errors = _watched_page(browser)
+        _survey_page(page, server.url, survey_video)
+        page.click("button:text-is('Upload and survey')")
+        page.wait_for_function("window.fidotrack.survey.job && window.fidotrack.survey.job.status === 'running'",
+                               timeout=60_000)
+        page.click("button:text-is('Cancel')")
+        page.wait_for_function("window.fidotrack.survey.job.status === 'cancelled'", timeout=60_000)
+        assert "previous map" in page.locator("#survey-result").inner_text()
+        environment_id = page.evaluate("window.fidotrack.survey.environmentId")
+        assert httpx.get(f"{server.url}/environments/{environment_id}").json()["has_map"] is False
     assert errors == []
 
 

@@ -77,7 +77,8 @@ export async function surveyPage(view, environmentId) {
     sessionStorage.setItem(jobKey(environmentId), jobId);
     cancel.disabled = false;
     cancel.onclick = async () => {
-      try { state.job = await api("DELETE", `/jobs/${jobId}`); } catch (error) { notify(error.message); }
+      cancel.disabled = true;  // the next poll shows the job cancelled
+      try { await api("DELETE", `/jobs/${jobId}`); } catch (error) { notify(error.message); cancel.disabled = false; }
     };
     while (!stopped) {
       let job;
