@@ -27,6 +27,10 @@ def ws_message_limit(settings: Settings) -> int:
     return settings.max_frame_bytes + WS_MESSAGE_MARGIN
 
 
+#: Seconds `fidotrack serve` gives open connections to close when it is stopped.
+SHUTDOWN_GRACE_S = 5
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -50,6 +54,9 @@ def _serve(args: argparse.Namespace) -> int:
         proxy_headers=True,
         ssl_certfile=settings.tls_certfile,
         ssl_keyfile=settings.tls_keyfile,
+        # A stop waits this long for open connections, then closes them: a browser may
+        # leave a TLS connection's closing unanswered, which asyncio waits out for 30 s.
+        timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
     )
     return 0
 
