@@ -400,3 +400,30 @@ def test_a_phone_on_the_network_gets_the_camera_over_https(tmp_path: Path, playw
     finally:
         browser.close()
     assert plain_errors == [] and errors == []
+
+
+def test_the_3d_views_geometry_matches_numpy(tmp_path: Path, browser: Any) -> None:
+    # The page's own numerics: the uncertainty ellipsoid's axes (eigen-decomposition of
+    # the pose covariance) and a card's corners fitted to its four disc centres.
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(3, 3))
+    covariance = (a @ a.T * 1e-6).tolist()
+    origin, u_axis, v_axis = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    discs_uv = [[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]]
+    discs = [(origin + u * u_axis + v * v_axis).tolist() for u, v in discs_uv]
+    with running_server(tmp_path / "data", tmp_path / "server.log") as server:
+        page, errors = _watched_page(browser)
+        page.goto(f"{server.url}/app/")
+        values, vectors, corners = page.evaluate("""async ([covariance, discs, uv]) => {
+            const scene = await import("./js/scene.js");
+            const [values, vectors] = scene.symmetricEigen(covariance);
+            const corners = scene.cardCorners(discs, uv).map((c) => [c.x, c.y, c.z]);
+            return [values, vectors, corners];
+        }""", [covariance, discs, discs_uv])
+    expected = np.linalg.eigvalsh(np.asarray(covariance))
+    np.testing.assert_allclose(sorted(values), expected, rtol=1e-9, atol=1e-15)
+    v = np.asarray(vectors)
+    np.testing.assert_allclose(v.T @ np.asarray(covariance) @ v, np.diag(values), atol=1e-15)
+    truth = [origin + u * u_axis + w * v_axis for u, w in ((0, 0), (1, 0), (1, 1), (0, 1))]
+    np.testing.assert_allclose(corners, truth, atol=1e-9)
+    assert errors == []

@@ -2,6 +2,7 @@
 // `window.fidotrack` (what is drawn, what the camera streamed) for people and tests alike.
 
 import { apiKey, setApiKey } from "./api.js";
+import { notify } from "./dom.js";
 import { detectPage } from "./detect.js";
 import { environmentsPage } from "./environments.js";
 import { mapPage } from "./map.js";
@@ -20,12 +21,6 @@ const ROUTES = [
 
 window.fidotrack = { page: null };
 let leave = null;  // the current page's clean-up (stops cameras, sockets, timers)
-
-export function notify(message) {
-  const notice = document.getElementById("notice");
-  notice.textContent = message || "";
-  notice.hidden = !message;
-}
 
 async function route() {
   if (leave) { leave(); leave = null; }

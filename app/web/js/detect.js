@@ -2,8 +2,7 @@
 // passed the classifier, and the identified targets with their ids.
 
 import { api, postImage } from "./api.js";
-import { notify } from "./app.js";
-import { fixed, h } from "./dom.js";
+import { fixed, h, notify } from "./dom.js";
 
 function draw(canvas, image, result) {
   canvas.width = result.width;

@@ -24,3 +24,10 @@ export function quantile(values, q) {
   const sorted = [...values].sort((a, b) => a - b);
   return sorted[Math.min(sorted.length - 1, Math.max(0, Math.ceil(q * sorted.length) - 1))];
 }
+
+/** Show a message in the notice bar (an error the service gave, say); "" hides it. */
+export function notify(message) {
+  const notice = document.getElementById("notice");
+  notice.textContent = message || "";
+  notice.hidden = !message;
+}

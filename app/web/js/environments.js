@@ -2,8 +2,7 @@
 // its classifier, and go on to its survey, map and live tracking.
 
 import { api, openFile } from "./api.js";
-import { notify } from "./app.js";
-import { fixed, h } from "./dom.js";
+import { fixed, h, notify } from "./dom.js";
 
 /** The sheet of cards to print: ids 0..n-1 at the environment's card size. */
 function sheetPath(environment, count) {

@@ -3,8 +3,7 @@
 // points) with its residuals.
 
 import { api } from "./api.js";
-import { notify } from "./app.js";
-import { fixed, h } from "./dom.js";
+import { fixed, h, notify } from "./dom.js";
 import { MapView, STD_SCALE_M } from "./scene.js";
 
 /** A map and what the viewer draws with it: the card layout and the survey's trajectory. */

@@ -3,8 +3,7 @@
 // they name.
 
 import { api, postForm } from "./api.js";
-import { notify } from "./app.js";
-import { fixed, h } from "./dom.js";
+import { fixed, h, notify } from "./dom.js";
 
 const POLL_MS = 500;
 /** Where the page remembers the environment's last survey job, to follow it or show it again. */

@@ -4,8 +4,7 @@
 // in the 3D map with its uncertainty; fps, latency and dropped frames measured here.
 
 import { trackUrl } from "./api.js";
-import { notify } from "./app.js";
-import { fixed, h, quantile } from "./dom.js";
+import { fixed, h, notify, quantile } from "./dom.js";
 import { loadMap } from "./map.js";
 import { MapView } from "./scene.js";
 
