@@ -269,6 +269,14 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
                                "window.fidotrack.map.focused === null", timeout=30_000)
         state = page.evaluate("window.fidotrack.map")
         assert state["ids"] == sorted(t["id"] for t in mapped["targets"])
+        # A still view is not redrawn (a phone without a GPU would draw it in software
+        # 60 times a second); a change of view is.
+        page.wait_for_timeout(500)  # (the first frames: the map, the layout's resize)
+        drawn = page.evaluate("window.fidotrack.map.framesDrawn")
+        page.wait_for_timeout(1000)
+        assert page.evaluate("window.fidotrack.map.framesDrawn") == drawn > 0
+        page.click("button:text-is('Top down')")
+        page.wait_for_function(f"window.fidotrack.map.framesDrawn > {drawn}")
         assert state["trajectory"] == sum(p is not None for p in job["result"]["trajectory"])
         _screenshot(page, "map")
         # Align to the world with the first card as origin: the viewer redraws the aligned map.

@@ -44,6 +44,8 @@ export async function mapPage(view, environmentId, focusId) {
   const viewer = new MapView(container);
   const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: loaded.trajectory.length,
                   alignment: null, focused: null };
+  // Frames the 3D view has drawn: it draws only when something changes.
+  Object.defineProperty(state, "framesDrawn", { get: () => viewer.frames, enumerable: true });
   window.fidotrack.map = state;
 
   function draw() {

@@ -77,13 +77,26 @@ function label(text, heightM) {
   return sprite;
 }
 
+/** Empty a group, freeing its objects' GPU buffers and textures (the live camera is redrawn per frame). */
+function clearGroup(group) {
+  group.traverse((object) => {
+    object.geometry?.dispose();
+    for (const material of [object.material].flat()) {
+      material?.map?.dispose();
+      material?.dispose();
+    }
+  });
+  group.clear();
+}
+
 /** The map frame's up direction: z in a world frame (alignment puts the floor at z = 0), -y in the survey's. */
 function upOf(map) {
   return map.frame === "world" ? new THREE.Vector3(0, 0, 1) : new THREE.Vector3(0, -1, 0);
 }
 
 export class MapView {
-  constructor(container) {
+  /** A view in `container`, drawn at most `maxFps` times a second. */
+  constructor(container, { maxFps = 60 } = {}) {
     this.container = container;
     this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
@@ -106,23 +119,42 @@ export class MapView {
       this.renderer.setSize(width, height);
       this.camera.aspect = width / height;
       this.camera.updateProjectionMatrix();
+      this.requestRender();
     };
     this.observer = new ResizeObserver(this.resize);
+    this.running = true;
+    this.frameQueued = false;
+    this.lastFrame = -Infinity;
+    this.minFrameMs = 1000 / maxFps;
+    this.frames = 0;  // frames drawn: the view draws only when something changed
+    this.controls.addEventListener("change", () => this.requestRender());
     this.observer.observe(container);
     this.resize();
-    this.running = true;
-    const loop = () => {
+  }
+
+  /**
+   * Draw the view once, at the next animation frame, at most `maxFps` times a second.
+   * Nothing is drawn while nothing changes: a browser without a GPU draws in software,
+   * and a view redrawn 60 times a second takes a core from the page's own work.
+   */
+  requestRender() {
+    if (this.frameQueued || !this.running) return;
+    this.frameQueued = true;
+    const wait = Math.max(0, this.lastFrame + this.minFrameMs - performance.now());
+    setTimeout(() => requestAnimationFrame(() => {
+      this.frameQueued = false;
       if (!this.running) return;
-      this.controls.update();
+      this.lastFrame = performance.now();
+      const moving = this.controls.update();  // damping: the view glides on after a drag
       this.renderer.render(this.scene, this.camera);
-      requestAnimationFrame(loop);
-    };
-    loop();
+      this.frames += 1;
+      if (moving) this.requestRender();
+    }), wait);
   }
 
   /** Draw a map document; `discsUv` are the card layout's disc centres in card units. */
   setMap(map, discsUv) {
-    this.mapGroup.clear();
+    clearGroup(this.mapGroup);
     this.cards.clear();
     this.up = upOf(map);
     const box = new THREE.Box3();
@@ -165,7 +197,8 @@ export class MapView {
 
   /** The survey's camera trajectory: the registered frames' camera centres, in order. */
   setTrajectory(positions) {
-    this.trajectoryGroup.clear();
+    clearGroup(this.trajectoryGroup);
+    this.requestRender();
     if (positions.length < 2) return;
     const points = positions.map((p) => new THREE.Vector3(...p));
     this.trajectoryGroup.add(
@@ -179,7 +212,8 @@ export class MapView {
    * position's 3-sigma ellipsoid from the covariance (m^2). null hides it.
    */
   setCamera(pose) {
-    this.liveGroup.clear();
+    clearGroup(this.liveGroup);
+    this.requestRender();
     if (!pose) return;
     const R = pose.R;
     const C = new THREE.Vector3(...pose.position);
@@ -215,6 +249,7 @@ export class MapView {
     this.controls.target.copy(card.centre);
     this.camera.position.copy(card.centre).addScaledVector(this.up, card.side * 4)
       .add(new THREE.Vector3(card.side * 3, card.side * 3, card.side * 3).projectOnPlane(this.up));
+    this.requestRender();
     return true;
   }
 
@@ -223,6 +258,7 @@ export class MapView {
     this.controls.target.copy(this.centre);
     const side = new THREE.Vector3(1, 0, 0).projectOnPlane(this.up).normalize().multiplyScalar(1e-3 * this.size);
     this.camera.position.copy(this.centre).addScaledVector(this.up, this.size * 1.1).add(side);
+    this.requestRender();
   }
 
   /** An oblique view of the whole map. */
@@ -230,10 +266,12 @@ export class MapView {
     this.controls.target.copy(this.centre);
     const across = new THREE.Vector3(1, 0.6, 0.3).projectOnPlane(this.up).normalize();
     this.camera.position.copy(this.centre).addScaledVector(across, this.size * 0.9).addScaledVector(this.up, this.size * 0.6);
+    this.requestRender();
   }
 
   dispose() {
     this.running = false;
+    for (const group of [this.mapGroup, this.trajectoryGroup, this.liveGroup]) clearGroup(group);
     this.observer.disconnect();
     this.controls.dispose();
     this.renderer.dispose();

@@ -58,7 +58,9 @@ export async function trackPage(view, environmentId) {
         h("label", {}, "JPEG quality", quality), startButton)),
     stats,
     h("div", { class: "grid" }, h("div", { class: "stage" }, video, overlay), h("div", {}, container, poseText)));
-  const viewer = new MapView(container);
+  // The 3D view follows the pose at 10 frames a second: enough to watch, and it leaves
+  // the page's time to the frames (a browser without a GPU draws it in software).
+  const viewer = new MapView(container, { maxFps: 10 });
   viewer.setMap(loaded.map, loaded.discsUv);
 
   const canvas = document.createElement("canvas");
