@@ -16,7 +16,8 @@ real ``fidotrack serve``. Then, one after the other:
   JPEG quality of ``--quality``, and presses Start. The page draws the camera's current
   picture to a canvas, encodes it (``canvas.toBlob``, JPEG), sends it on ``/track`` and
   sends the next one when the reply is in (lock-step); it draws the targets over the
-  video and moves the camera in its 3D map view with each reply. Its measurements are
+  video and moves the camera in its 3D map view (drawn at most 10 times a second) with
+  each reply. Its measurements are
   read from ``window.fidotrack.track``; every binary frame it sends is captured, and the
   stamp in it says which walk frame it shows, hence the true camera centre;
 * python: a `websockets` client in lock-step, sending the same stamped frames in walk
@@ -51,7 +52,7 @@ Run: ``.venv/bin/python bench/bench_browser.py [--sizes 640x480,1280x720] [--sec
 Chromium on the PATH as ``chromium`` and the ``playwright`` package, and exits with a
 message without them; about two and a half minutes with the defaults, at most two more
 waiting for an idle machine). ``--stop-3d-view`` is a diagnostic: it ends the page's 3D
-view's redraw loop before Start, to show what that loop costs the tracking.
+view's drawing before Start, to show what the view costs the tracking.
 """
 
 from __future__ import annotations
