@@ -352,8 +352,15 @@ def test_the_pages_show_the_services_errors_and_use_the_key_typed_in(tmp_path: P
         page.wait_for_selector("text=No environment yet")
         assert notice.is_hidden()
         page.fill("input[name=name]", "lab")
+        page.fill("input[name=marker_size_mm]", "150")
         page.click("button:text-is('Create')")
         page.wait_for_function("location.hash.endsWith('/survey')")
+        # The sheet of cards to print, at the environment's card side, fetched with the key.
+        page.goto(f"{server.url}/app/#/environments")
+        with page.expect_response(lambda r: "/markers/sheet.pdf" in r.url) as sheet, page.expect_popup():
+            page.click("button:text-is('Print cards')")
+        assert sheet.value.status == 200 and sheet.value.headers["content-type"] == "application/pdf"
+        assert "size_mm=150" in sheet.value.url and "ids=0-11" in sheet.value.url
         page.goto(f"{server.url}/app/#/environments/1/map")  # no map yet: the service says so
         notice.wait_for(state="visible")
         assert "404" in notice.inner_text() and "map" in notice.inner_text()
