@@ -204,6 +204,7 @@ class SurveyVideo:
     path: Path
     scene: Any  # app.sim.scenes.Scene
     marker_size_m: float
+    room_size: tuple[float, float, float]
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +218,7 @@ def survey_video(tmp_path_factory: pytest.TempPathFactory) -> SurveyVideo:
     for image, _ in render_walk(room.scene, SMALL_ROOM.camera, room.poses, room.rng, degradation="none"):
         writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
     writer.release()
-    return SurveyVideo(path, room.scene, SMALL_ROOM.marker_size_m)
+    return SurveyVideo(path, room.scene, SMALL_ROOM.marker_size_m, SMALL_ROOM.size)
 
 
 def _survey_page(page: Any, server_url: str, video: SurveyVideo) -> None:
@@ -294,6 +295,10 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         alignment = page.evaluate("window.fidotrack.map.alignment")
         assert alignment["scale"] == 1.0 and alignment["rms_m"] < 0.005  # rigid: the survey's metric scale kept
         assert page.locator("#alignment-residuals tr").count() == 1 + 4
+        # The survey's camera path moved with the map: now in the room, where the walk went.
+        path = np.asarray(page.evaluate("window.fidotrack.map.cameraPath"))
+        assert len(path) == state["trajectory"]
+        assert np.all((path > -0.05) & (path < np.asarray(survey_video.room_size) + 0.05)), path
     assert errors == []
 
 

@@ -6,14 +6,17 @@ import { api } from "./api.js";
 import { fixed, h, notify } from "./dom.js";
 import { MapView, STD_SCALE_M } from "./scene.js";
 
-/** A map and what the viewer draws with it: the card layout and the survey's trajectory. */
+/**
+ * A map and what the viewer draws with it: the card layout, and the survey's camera path
+ * while the map is still in the survey's frame (the job keeps the path in that frame).
+ */
 export async function loadMap(environmentId) {
   const [environment, map] = await Promise.all([
     api("GET", `/environments/${environmentId}`), api("GET", `/environments/${environmentId}/map`)]);
   const firstId = map.targets.length ? map.targets[0].id : 0;
   const layout = await api("GET", `/markers/${firstId}?family=${environment.marker_family}`);
   let trajectory = [];
-  if (map.survey_job_id) {
+  if (map.survey_job_id && map.frame === "survey") {
     try {
       const job = await api("GET", `/jobs/${map.survey_job_id}`);
       trajectory = (job.result?.trajectory || []).filter(Boolean).map((pose) => pose.position);
@@ -42,7 +45,8 @@ export async function mapPage(view, environmentId, focusId) {
   const residuals = h("div", { id: "alignment-residuals" });
   view.append(h("h1", {}, `Map: ${environment.name}`), h("div", { class: "grid" }, container, h("div", {}, info)));
   const viewer = new MapView(container);
-  const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: loaded.trajectory.length,
+  let trajectory = loaded.trajectory;  // in the frame of the map shown
+  const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: trajectory.length,
                   alignment: null, focused: null };
   // Frames the 3D view has drawn: it draws only when something changes.
   Object.defineProperty(state, "framesDrawn", { get: () => viewer.frames, enumerable: true });
@@ -50,7 +54,9 @@ export async function mapPage(view, environmentId, focusId) {
 
   function draw() {
     viewer.setMap(map, loaded.discsUv);
-    viewer.setTrajectory(map.frame === loaded.map.frame ? loaded.trajectory : []);
+    viewer.setTrajectory(trajectory);
+    state.trajectory = trajectory.length;
+    state.cameraPath = trajectory;
     state.cards = viewer.cards.size;
     state.ids = [...viewer.cards.keys()].sort((a, b) => a - b);
     state.frame = map.frame;
@@ -70,6 +76,9 @@ export async function mapPage(view, environmentId, focusId) {
       const result = await api("POST", `/environments/${environmentId}/alignment`, spec);
       state.alignment = { scale: result.scale, rms_m: result.rms_m, residuals: result.residuals };
       map = result.map;
+      // The camera path moves with the map: x_world = scale R x + t.
+      trajectory = trajectory.map((x) => result.R.map((row, i) =>
+        result.scale * (row[0] * x[0] + row[1] * x[1] + row[2] * x[2]) + result.t[i]));
       draw();
       residuals.replaceChildren(
         h("p", {}, `Scale ${fixed(result.scale, 4)} · RMS ${fixed(result.rms_m * 1000, 2)} mm`),
@@ -87,7 +96,7 @@ export async function mapPage(view, environmentId, focusId) {
       h("div", { class: "panel" },
         h("p", {}, h("b", { id: "card-count" }, String(state.cards)), " cards · frame ", h("b", {}, map.frame),
           map.rms_px ? ` · survey RMS ${fixed(map.rms_px, 2)} px` : "",
-          loaded.trajectory.length ? ` · ${loaded.trajectory.length} survey frames` : ""),
+          trajectory.length ? ` · ${trajectory.length} survey frames` : ""),
         h("p", { class: "muted" }, `Colour: each card's largest disc standard deviation, green ${STD_SCALE_M[0] * 1000} mm `,
           `to red ${STD_SCALE_M[1] * 1000} mm. Drag to orbit, right-drag to pan, scroll to zoom.`),
         worst.length ? h("p", {}, "Least precise: ", worst.map(([id, card]) => h("a", { class: "chip", onclick: () => viewer.focusCard(id) },
