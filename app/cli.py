@@ -1,16 +1,20 @@
-"""The ``fidotrack`` command: ``serve``, ``markers``, ``keys`` and ``synth``."""
+"""The ``fidotrack`` command: run the service (``serve``, ``keys``), use a running one
+through the Python client (``survey``, ``track``, ``map``), print cards (``markers``),
+render simulated rooms (``synth``) and show the whole system at work (``demo``)."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
 if TYPE_CHECKING:
+    from app.client import Client
     from app.settings import Settings
 
 
@@ -80,6 +84,150 @@ def _markers(args: argparse.Namespace) -> int:
     args.output.write_bytes(pdf)
     print(f"wrote {args.output} ({len(pdf)} bytes)", file=sys.stderr)
     return 0
+
+
+# -- commands on a running service (the Python client) ---------------------------------
+
+
+def _client(args: argparse.Namespace) -> Client:
+    from app.client import Client
+
+    return Client(args.url, api_key=args.api_key)
+
+
+def _fail(command: str, error: Exception) -> int:
+    print(f"fidotrack {command}: {error}", file=sys.stderr)
+    return 1
+
+
+def _survey(args: argparse.Namespace) -> int:
+    from app.client import ApiError, JobFailed
+    from app.schemas import JobOut
+
+    with _client(args) as client, tqdm(total=1.0, unit="", bar_format="{l_bar}{bar}| {elapsed}<{remaining}",
+                                       disable=args.quiet) as bar:
+        def progress(job: JobOut) -> None:
+            bar.set_description(job.stage[:40])
+            bar.n = job.progress
+            bar.refresh()
+
+        try:
+            job = client.survey(args.environment, args.video, progress, max_frames=args.max_frames,
+                                marker_size_m=args.marker_size, feature_tracks=args.feature_tracks)
+        except (ApiError, JobFailed) as error:
+            bar.close()
+            return _fail("survey", error)
+    result = job.result or {}
+    print(f"survey {job.id}: {result.get('n_targets')} cards mapped from {result.get('n_registered')} of "
+          f"{result.get('n_frames')} frames, reprojection RMS {result.get('rms_px', float('nan')):.2f} px, "
+          f"focal length {result.get('focal_px', float('nan')):.1f} px")
+    for warning in result.get("warnings", []):
+        print(f"warning: {warning}")
+    return 0
+
+
+def _frames_of(source: str) -> Iterator[tuple[str, bytes]]:
+    """Frames of a video file, a folder of images (in name order) or a camera index, as
+    (name, JPEG or PNG bytes)."""
+    import cv2
+
+    path = Path(source)
+    if path.is_dir():
+        for image in sorted(p for p in path.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")):
+            yield image.name, image.read_bytes()
+        return
+    capture = cv2.VideoCapture(int(source) if source.isdigit() else str(path))
+    if not capture.isOpened():
+        raise FileNotFoundError(f"cannot open {source!r} as a video, a folder of images or a camera index")
+    try:
+        index = 0
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            yield str(index), cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+            index += 1
+    finally:
+        capture.release()
+
+
+def _track(args: argparse.Namespace) -> int:
+    import csv
+    import json
+
+    from app.client import ApiError, TrackRefused
+    from app.schemas import TrackConfig
+
+    names: list[str] = []
+
+    def frames() -> Iterator[bytes]:
+        for name, data in _frames_of(args.source):
+            names.append(name)
+            yield data
+
+    out = sys.stdout if args.output is None else open(args.output, "w", newline="")
+    config = TrackConfig(method=args.method) if args.method else None
+    try:
+        with _client(args) as client:
+            writer = csv.writer(out) if args.format == "csv" else None
+            if writer is not None:
+                writer.writerow(["frame", "seq", "x", "y", "z", "targets", "reprojection_rms_px", "pose_error"])
+            for reply in tqdm(client.track(args.environment, frames(), config), unit="frame", disable=args.quiet,
+                              file=sys.stderr):
+                name = names[reply.seq]
+                if writer is not None:
+                    position = reply.pose.position if reply.pose else ["", "", ""]
+                    writer.writerow([name, reply.seq, *position, len(reply.targets),
+                                     reply.pose.reprojection_rms_px if reply.pose else "", reply.pose_error or ""])
+                else:
+                    out.write(json.dumps({"frame": name, **reply.model_dump(mode="json")}) + "\n")
+    except (ApiError, TrackRefused, FileNotFoundError, OSError) as error:
+        return _fail("track", error)
+    finally:
+        if out is not sys.stdout:
+            out.close()
+    return 0
+
+
+def _map(args: argparse.Namespace) -> int:
+    import json
+
+    from app.client import ApiError
+
+    try:
+        with _client(args) as client:
+            if args.action == "put":
+                document = client.put_map(args.environment, json.loads(Path(args.file).read_text()))
+                print(f"stored a map of {len(document.targets)} cards in environment {args.environment}",
+                      file=sys.stderr)
+                return 0
+            document = client.get_map(args.environment)
+    except (ApiError, OSError, ValueError) as error:
+        return _fail(f"map {args.action}", error)
+    if args.action == "get":
+        text = document.model_dump_json(indent=1)
+        if args.file:
+            Path(args.file).write_text(text)
+        else:
+            print(text)
+        return 0
+    camera = document.camera
+    print(f"environment {args.environment}: {len(document.targets)} cards, frame {document.frame}, "
+          f"camera {camera.width}x{camera.height} f={camera.K[0][0]:.1f} px"
+          + (f", survey RMS {document.rms_px:.2f} px" if document.rms_px is not None else ""))
+    print(f"{'card':>5} {'x':>8} {'y':>8} {'z':>8} {'std mm':>7} {'views':>5}")
+    for target in sorted(document.targets, key=lambda t: t.id):
+        centre = [sum(disc[k] for disc in target.discs) / len(target.discs) for k in range(3)]
+        std = f"{1000 * max(target.std_m):7.2f}" if target.std_m else f"{'-':>7}"
+        views = f"{target.n_views:5d}" if target.n_views is not None else f"{'-':>5}"
+        print(f"{target.id:5d} {centre[0]:8.3f} {centre[1]:8.3f} {centre[2]:8.3f} {std} {views}")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from app.demo import run_demo
+
+    return run_demo(url=args.url, api_key=args.api_key, small=args.small, quiet=args.quiet, keep=args.keep)
 
 
 def _synth_frames(args: argparse.Namespace) -> int:
@@ -201,60 +349,110 @@ class _ScenarioNames(Sequence[str]):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fidotrack", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="fidotrack", description="fidotrack: marker-based camera tracking. Run the service, use it, print "
+        "cards, render simulated rooms, or see it all at work with `fidotrack demo`.")
     commands = parser.add_subparsers(dest="command", required=True)
 
     serve = commands.add_parser("serve", help="run the HTTP/WebSocket service")
     serve.add_argument("--host", help="default: FIDOTRACK_HOST or 127.0.0.1")
     serve.add_argument("--port", type=int, help="default: FIDOTRACK_PORT or 8000")
-    serve.add_argument("--workers", type=int, default=1)
+    serve.add_argument("--workers", type=int, default=1, help="server processes (default: %(default)s)")
     serve.set_defaults(run=_serve)
 
     cards = commands.add_parser("markers", help="write printable marker cards as an A4 PDF")
     cards.add_argument("--ids", default="0-11", help='ids, e.g. "0-11" or "0,3,5-7"')
     cards.add_argument("--size-mm", type=float, default=150.0, help="side of each card in mm")
-    cards.add_argument("--family", default="fido3x3")
-    cards.add_argument("-o", "--output", type=Path, default=Path("markers.pdf"))
+    cards.add_argument("--family", default="fido3x3", help="code family of the cards (default: %(default)s)")
+    cards.add_argument("-o", "--output", type=Path, default=Path("markers.pdf"),
+                       help="the PDF to write (default: %(default)s)")
     cards.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     cards.set_defaults(run=_markers)
 
     api_keys = commands.add_parser("keys", help="manage API keys (used when FIDOTRACK_API_KEYS=true)")
     key_actions = api_keys.add_subparsers(dest="action", required=True)
     create = key_actions.add_parser("create", help="create a key and print it (once)")
-    create.add_argument("--name", required=True)
+    create.add_argument("--name", required=True, help="what the key is for (shown in lists and logs)")
     create.add_argument("--scopes", default="read,track", help="comma list of read, track, admin")
     key_actions.add_parser("list", help="list keys (never the secrets)")
     revoke = key_actions.add_parser("revoke", help="revoke a key by id")
-    revoke.add_argument("id", type=int)
+    revoke.add_argument("id", type=int, help="the key's id (from `fidotrack keys list`)")
     api_keys.set_defaults(run=_keys)
+
+    def on_service(parser: argparse.ArgumentParser, url_help: str | None = None) -> None:
+        if url_help is None:
+            parser.add_argument("--url", default=os.environ.get("FIDOTRACK_URL", "http://127.0.0.1:8000"),
+                                help="the service (default: FIDOTRACK_URL or %(default)s)")
+        else:
+            parser.add_argument("--url", default=os.environ.get("FIDOTRACK_URL"), help=url_help)
+        parser.add_argument("--api-key", default=os.environ.get("FIDOTRACK_API_KEY"),
+                            help="API key, when the service requires keys (default: FIDOTRACK_API_KEY)")
+        parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+    survey = commands.add_parser("survey", help="survey an environment from a video of its room, with progress")
+    survey.add_argument("video", type=Path, help="the video of the room (MP4, MOV or AVI)")
+    survey.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
+    survey.add_argument("--max-frames", type=int, help="frames to use, evenly spaced (default: the service's)")
+    survey.add_argument("--marker-size", type=float, help="printed card side in metres (default: the environment's)")
+    survey.add_argument("--feature-tracks", action="store_true", help="also track the walls' own texture")
+    on_service(survey)
+    survey.set_defaults(run=_survey)
+
+    track = commands.add_parser("track", help="stream frames to /track and print the poses (CSV or JSON lines)")
+    track.add_argument("source", help="a video file, a folder of JPEG/PNG images (name order) or a camera index")
+    track.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
+    track.add_argument("--format", choices=["csv", "jsonl"], default="csv",
+                       help="csv: frame, position, targets; jsonl: each whole reply (default: %(default)s)")
+    track.add_argument("--method", choices=["nonlinear", "posit", "mean", "single"],
+                       help="pose method (default: the service's, nonlinear)")
+    track.add_argument("-o", "--output", type=Path, help="write the poses here (default: standard output)")
+    on_service(track)
+    track.set_defaults(run=_track)
+
+    maps = commands.add_parser("map", help="show, export or import an environment's map")
+    maps.add_argument("action", choices=["show", "get", "put"],
+                      help="show: a table of the cards; get: the map as JSON; put: store a JSON map")
+    maps.add_argument("file", nargs="?", help="get: write here (default: standard output); put: read from here")
+    maps.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
+    on_service(maps)
+    maps.set_defaults(run=_map)
+
+    demo = commands.add_parser("demo", help="render a room, survey it, track through it, print the accuracy")
+    demo.add_argument("--small", action="store_true", help="a smaller room and shorter walks (about half the time)")
+    demo.add_argument("--keep", type=Path, help="keep the rendered video, frames and truth in this folder")
+    on_service(demo, url_help="a running service to use (default: FIDOTRACK_URL, else the demo starts its own "
+                              "on a free port with a temporary data directory)")
+    demo.set_defaults(run=_demo)
 
     synth = commands.add_parser("synth", help="render simulated frames with ground truth")
     kinds = synth.add_subparsers(dest="kind", required=True)
     frames = kinds.add_parser("frames", help="single frames of a named scenario")
     frames.add_argument("--scenario", default="default", choices=_ScenarioNames(), metavar="SCENARIO",
                         help="one of %(choices)s (default: %(default)s)")
-    frames.add_argument("--count", type=int, default=10)
+    frames.add_argument("--count", type=int, default=10, help="frames to render (default: %(default)s)")
     frames.add_argument("--degradation", choices=["none", "default", "blur", "dark", "full"],
                         help="override the scenario's degradation preset")
     frames.set_defaults(run=_synth_frames)
     room = kinds.add_parser("room", help="a room with markers; calibration and tracking walks")
     room.add_argument("--room", default="8x6x3", help="W x D x H in metres")
-    room.add_argument("--markers", type=int, default=30)
+    room.add_argument("--markers", type=int, default=30, help="cards on the walls (default: %(default)s)")
     room.add_argument("--marker-size", type=float, default=0.2, help="card side in metres")
-    room.add_argument("--frames", type=int, default=300, help="frames per walk")
-    room.add_argument("--focal", type=float, default=820.0)
-    room.add_argument("--k1", type=float, default=-0.12)
-    room.add_argument("--k2", type=float, default=0.0)
-    room.add_argument("--fps", type=float, default=30.0)
-    room.add_argument("--degradation", default="default", choices=["none", "default", "blur", "dark", "full"])
-    room.add_argument("--format", choices=["mp4", "jpeg"], default="mp4")
+    room.add_argument("--frames", type=int, default=300, help="frames per walk (default: %(default)s)")
+    room.add_argument("--focal", type=float, default=820.0, help="focal length, px (default: %(default)s)")
+    room.add_argument("--k1", type=float, default=-0.12, help="radial distortion k1 (default: %(default)s)")
+    room.add_argument("--k2", type=float, default=0.0, help="radial distortion k2 (default: %(default)s)")
+    room.add_argument("--fps", type=float, default=30.0, help="video frame rate (default: %(default)s)")
+    room.add_argument("--degradation", default="default", choices=["none", "default", "blur", "dark", "full"],
+                      help="camera degradation preset (default: %(default)s)")
+    room.add_argument("--format", choices=["mp4", "jpeg"], default="mp4",
+                      help="walks as MP4 videos or folders of JPEGs (default: %(default)s)")
     room.set_defaults(run=_synth_room)
     for sub in (frames, room):
-        sub.add_argument("--out", type=Path, required=True)
-        sub.add_argument("--seed", type=int, default=0)
-        sub.add_argument("--width", type=int, default=640)
-        sub.add_argument("--height", type=int, default=480)
-        sub.add_argument("--family", default="fido3x3")
+        sub.add_argument("--out", type=Path, required=True, help="the folder to write")
+        sub.add_argument("--seed", type=int, default=0, help="random seed: the same seed, the same room (default: 0)")
+        sub.add_argument("--width", type=int, default=640, help="image width, px (default: %(default)s)")
+        sub.add_argument("--height", type=int, default=480, help="image height, px (default: %(default)s)")
+        sub.add_argument("--family", default="fido3x3", help="code family of the cards (default: %(default)s)")
         sub.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return parser
 

@@ -32,10 +32,12 @@ LAYERS: dict[str, int] = {
     "app.models": 3,
     "app.schemas": 3,
     "app.services": 4,
+    "app.client": 4,  # a client of the API: its message models, never the services
     "app.deps": 5,
     "app.middleware": 5,
     "app.routers": 6,
     "app.cli": 7,
+    "app.demo": 7,
     "app.main": 7,
 }
 
