@@ -102,7 +102,7 @@ def _fail(command: str, error: Exception) -> int:
 
 def _survey(args: argparse.Namespace) -> int:
     from app.client import ApiError, JobFailed
-    from app.schemas import JobOut
+    from app.schemas import JobOut, SurveyResult
 
     with _client(args) as client, tqdm(total=1.0, unit="", bar_format="{l_bar}{bar}| {elapsed}<{remaining}",
                                        disable=args.quiet) as bar:
@@ -117,11 +117,11 @@ def _survey(args: argparse.Namespace) -> int:
         except (ApiError, JobFailed) as error:
             bar.close()
             return _fail("survey", error)
-    result = job.result or {}
-    print(f"survey {job.id}: {result.get('n_targets')} cards mapped from {result.get('n_registered')} of "
-          f"{result.get('n_frames')} frames, reprojection RMS {result.get('rms_px', float('nan')):.2f} px, "
-          f"focal length {result.get('focal_px', float('nan')):.1f} px")
-    for warning in result.get("warnings", []):
+    result = job.result
+    assert isinstance(result, SurveyResult)
+    print(f"survey {job.id}: {result.n_targets} cards mapped from {result.n_registered} of {result.n_frames} "
+          f"frames, reprojection RMS {result.rms_px:.2f} px, focal length {result.focal_px:.1f} px")
+    for warning in result.warnings:
         print(f"warning: {warning}")
     return 0
 

@@ -6,7 +6,7 @@ over frames streamed to ``/track`` in lock-step.
 
     with Client("http://localhost:8000") as fidotrack:
         environment = fidotrack.create_environment("studio", marker_size_m=0.2)
-        job = fidotrack.survey(environment.id, "room.mp4", progress=print)
+        job = fidotrack.survey(environment.id, "room.mp4", progress=print)   # job.result: a SurveyResult
         for reply in fidotrack.track(environment.id, frames):  # JPEG bytes or numpy images
             print(reply.seq, reply.pose.position if reply.pose else reply.pose_error)
 

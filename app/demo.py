@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from app.client import ApiError, Client, JobFailed
 from app.core.geometry import Pose
-from app.schemas import AlignmentRequest, JobOut
+from app.schemas import AlignmentRequest, JobOut, SurveyResult
 
 __all__ = ["DEMO_FRAMES", "run_demo"]
 
@@ -160,11 +160,12 @@ def _use_the_service(client: Client, video: Path, frames: list[bytes], poses: li
 
         began = time.monotonic()
         job = client.survey(environment.id, video, progress)
-    result = job.result or {}
-    print(f"survey: {result['n_targets']} of {len(truth)} cards mapped from {result['n_registered']} of "
-          f"{result['n_frames']} frames in {time.monotonic() - began:.1f} s; reprojection RMS "
-          f"{result['rms_px']:.2f} px; focal length {result['focal_px']:.1f} px")
-    for warning in result.get("warnings", []):
+    result = job.result
+    assert isinstance(result, SurveyResult)
+    print(f"survey: {result.n_targets} of {len(truth)} cards mapped from {result.n_registered} of "
+          f"{result.n_frames} frames in {time.monotonic() - began:.1f} s; reprojection RMS "
+          f"{result.rms_px:.2f} px; focal length {result.focal_px:.1f} px")
+    for warning in result.warnings:
         print(f"  warning: {warning}")
 
     # The survey's map has its own origin and axes; four discs whose room positions are

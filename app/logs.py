@@ -85,12 +85,31 @@ class RedactSecrets(logging.Filter):
         return True
 
 
+#: The server's access log: `app.middleware.RequestObserver` logs each request once,
+#: with its request id, so uvicorn's own line would log it twice.
+SERVER_ACCESS_LOGGER = "uvicorn.access"
+#: What the WebSocket library logs of each connection, with neither path nor id: uvicorn's
+#: handshake line and the service's own connection lines already say it.
+_WEBSOCKET_CHATTER = frozenset({"connection open", "connection closed"})
+
+
+class DropDuplicates(logging.Filter):
+    """Drops the server's lines that repeat the service's own: its access log, and the
+    WebSocket library's bare connection lines."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name == SERVER_ACCESS_LOGGER:
+            return False
+        return not (isinstance(record.msg, str) and record.msg in _WEBSOCKET_CHATTER and not record.args)
+
+
 _MARK = "_fidotrack_handler"
 
 
 def configure(fmt: str = "json", level: str = "INFO") -> None:
-    """Send the ``app`` loggers to stderr in `fmt` ("json" or "text"), and keep API keys
-    out of them and out of the server's own access lines (`RedactSecrets`); idempotent."""
+    """Send the ``app`` loggers to stderr in `fmt` ("json" or "text"), keep API keys out
+    of them and out of the server's own lines (`RedactSecrets`), and drop the server's
+    lines that repeat the service's own (`DropDuplicates`); idempotent."""
     logger = logging.getLogger("app")
     logger.setLevel(level.upper())
     for handler in list(logger.handlers):
@@ -104,5 +123,7 @@ def configure(fmt: str = "json", level: str = "INFO") -> None:
     logger.propagate = False
     for name in SERVER_LOGGERS:
         server = logging.getLogger(name)
+        if not any(isinstance(f, DropDuplicates) for f in server.filters):
+            server.addFilter(DropDuplicates())
         if not any(isinstance(f, RedactSecrets) for f in server.filters):
             server.addFilter(RedactSecrets())

@@ -1,4 +1,5 @@
-"""Application factory and lifespan: database at head, shared state, routes.
+"""Application factory and lifespan: database at head, shared state, routes; the
+detector's kernels compile in the background (/readyz says when they are ready).
 
 ``uvicorn app.main:app`` with ``FIDOTRACK_*`` variables set is a complete deployment.
 """
@@ -18,12 +19,11 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from app import __version__, logs
-from app.core.detection import warm_up
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
 from app.middleware import DOCS_ASSETS_URL, WEB_APP_URL, ApiKeyGate, BodyLimit, RequestObserver
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
-from app.schemas import MAX_LISTED_ERRORS, error_summary
+from app.schemas import MAX_LISTED_ERRORS, complete_openapi, error_summary
 from app.services import classifiers
 from app.services.detection import DetectorCache
 from app.services.errors import ServiceError
@@ -33,10 +33,15 @@ from app.services.jobs import JobRunner
 from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
-from app.services.tracking import TrackingService
+from app.services.tracking import DetectorKernels, TrackingService
 from app.settings import Settings
 
 log = logging.getLogger("app")
+
+#: How long start-up waits at most for the detector's kernels to load from numba's cache
+#: (under a second), so that a restart comes up ready. It never waits for a compilation
+#: (10-30 s, a machine's first start): the server answers meanwhile, /readyz with 503.
+KERNELS_LOAD_WAIT_S = 10.0
 
 #: The web app's files: plain ES modules and vendored three.js, shipped in the package.
 WEB_DIR = Path(__file__).parent / "web"
@@ -47,15 +52,16 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     logs.configure(settings.log_format, settings.log_level)
     limit_compute_threads(settings.compute_threads)
+    # Started first, to overlap the database's start-up.
+    kernels = DetectorKernels()
+    kernels.start()
+    app.state.kernels = kernels
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     upgrade_to_head(engine, settings.data_dir)
     sessions = make_sessionmaker(engine)
     with sessions() as session:
         classifiers.install_default(session)
-    # The detector's compiled kernels: loaded from numba's cache (~0.5 s), or compiled on
-    # a cold cache (~10 s), now rather than on the first frame a client sends.
-    await anyio.to_thread.run_sync(warm_up)
     runner = JobRunner(settings.resolved_database_url, settings.sqlite_busy_timeout_ms, settings.data_dir,
                        sessions, settings.max_concurrent_jobs)
     runner.start()
@@ -71,6 +77,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # Frames of all clients share a few worker threads (OpenCV releases the GIL).
     app.state.track_streams = TrackStreams(app.state.tracking, settings=settings,
                                            limiter=anyio.CapacityLimiter(settings.track_threads))
+    await anyio.to_thread.run_sync(kernels.wait_unless_compiling, KERNELS_LOAD_WAIT_S)
     try:
         yield
     finally:
@@ -90,6 +97,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "per-frame pose (Claus & Fitzgibbon, WACV 2005).",
         lifespan=lifespan,
     )
+    # The document with the /track messages and the models' own examples (FastAPI drops
+    # their nulls); built on first request, not at every create_app.
+    build_openapi = app.openapi
+    app.openapi = lambda: complete_openapi(build_openapi())  # type: ignore[method-assign]
     settings = settings or Settings()
     app.state.settings = settings
     app.state.metrics = Metrics()

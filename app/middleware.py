@@ -193,8 +193,9 @@ def _verify(sessions: Any, key: str | None) -> keys.Principal | None:
 
 class RequestObserver:
     """Per HTTP request: a request id (the caller's ``X-Request-ID`` when sane, echoed in
-    the reply) for every log line inside it, one access log line, Prometheus metrics by
-    route template."""
+    the reply) for every log line inside it, one access log line (the only one:
+    `logs.DropDuplicates` drops the server's own; the route template, never the query,
+    which may hold a key), Prometheus metrics by route template."""
 
     def __init__(self, app: ASGIApp, metrics: Any) -> None:
         self.app = app
@@ -226,6 +227,8 @@ class RequestObserver:
             template = getattr(route, "path", "unmatched")
             elapsed = time.perf_counter() - started
             self.metrics.observe_request(scope["method"], template, status, elapsed)
+            client = scope.get("client")
             self.log.info("request", extra={"fields": {"method": scope["method"], "route": template,
-                                                       "status": status, "ms": round(elapsed * 1e3, 2)}})
+                                                       "status": status, "ms": round(elapsed * 1e3, 2),
+                                                       "client": client[0] if client else None}})
             logs.request_id.reset(token)

@@ -10,7 +10,9 @@ from datetime import UTC, datetime
 from enum import IntEnum, StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator,
+                      model_validator)
+from pydantic.json_schema import SkipJsonSchema, models_json_schema
 
 #: Most keys a JSON object in a request may have: twice the fields of the largest request
 #: model (every unknown key would cost an error of its own in the reply).
@@ -69,10 +71,94 @@ def _aware(value: datetime | None) -> datetime | None:
     return value
 
 
+# --- examples -----------------------------------------------------------------------
+#
+# The examples of the models below describe one consistent setting: 0.2 m cards of the
+# fido3x3 family in a room, filmed with a 640x480 camera of focal length 823 px; card 7
+# is in view about 1.4 m from the camera.
+
+_EXAMPLE_JOB_ID = "3f6c0d2a9b8e4f7a8c1d2e3f4a5b6c7d"
+_EXAMPLE_CAMERA: dict[str, Any] = {
+    "width": 640,
+    "height": 480,
+    "K": [[823.4, 0.0, 318.7], [0.0, 823.4, 241.2], [0.0, 0.0, 1.0]],
+    "dist": [-0.118, 0.094, 0.0, 0.0, 0.0],
+}
+_EXAMPLE_MAP_TARGETS: list[dict[str, Any]] = [
+    {"id": 7, "discs": [[1.2031, 0.4078, 2.923], [1.3047, 0.4003, 2.8596], [1.3072, 0.5199, 2.8497],
+                        [1.2056, 0.5273, 2.9131]],
+     "std_m": [0.0009, 0.0008, 0.0009, 0.0011], "n_views": 42},
+    {"id": 12, "discs": [[2.4105, 0.3822, 3.1054], [2.5301, 0.3817, 3.1102], [2.5296, 0.5018, 3.1097],
+                         [2.41, 0.5023, 3.1049]],
+     "std_m": [0.0014, 0.0013, 0.0015, 0.0014], "n_views": 17},
+]
+_EXAMPLE_MAP: dict[str, Any] = {
+    "frame": "survey", "units": "m", "camera": _EXAMPLE_CAMERA, "targets": _EXAMPLE_MAP_TARGETS, "rms_px": 0.31,
+    "survey_job_id": _EXAMPLE_JOB_ID,
+}
+_EXAMPLE_DETECTED: dict[str, Any] = {
+    "id": 7, "discs": [[297.41, 170.36], [365.12, 168.21], [365.48, 241.03], [297.02, 241.39]], "score": 0.94,
+}
+_EXAMPLE_R = [[0.9776, -0.0381, -0.207], [0.0214, 0.9964, -0.0825], [0.2094, 0.0762, 0.9749]]
+_EXAMPLE_POSE: dict[str, Any] = {
+    "R": _EXAMPLE_R,
+    "t": [-0.5918, -0.311, -1.742],
+    "position": [0.95, 0.42, 1.55],
+    "reprojection_rms_px": 0.18,
+    "n_targets": 2,
+    "n_points": 8,
+    "covariance_position": [[4.1e-06, 2.0e-07, -1.1e-06], [2.0e-07, 3.2e-06, 4.0e-07], [-1.1e-06, 4.0e-07, 9.8e-06]],
+    "focal_px": 823.4,
+    "method": "nonlinear",
+    "rejected_targets": [],
+}
+_EXAMPLE_DETECT_MS = {"candidates": 6.12, "targets": 3.27, "targets.group": 0.91, "targets.verify": 1.48,
+                      "targets.refine": 0.52, "targets.identify": 0.21, "targets.complete": 0.15, "detect": 9.46}
+_EXAMPLE_WARNING = (
+    "card 12: seen in 2 registered frames only (fewer than 3), from 2.4 m, over 9 degrees of viewing directions: "
+    "film it again from 1-2 m, walking past it so you see it from at least 15 degrees apart (a step of 0.5 m "
+    "sideways at 2 m), with other cards in the same shot")
+
+
+def _examples(*examples: dict[str, Any]) -> dict[str, Any]:
+    """A model's ``json_schema_extra``: its examples, as the OpenAPI document shows them."""
+    return {"examples": list(examples)}
+
+
+# --- errors -------------------------------------------------------------------------
+
+
 class Problem(BaseModel):
     """Error body of every 4xx/5xx reply."""
 
-    detail: str
+    model_config = ConfigDict(json_schema_extra=_examples({"detail": "environment 9 not found"}))
+
+    detail: str = Field(description="What went wrong, for a person.")
+
+
+class FieldError(BaseModel):
+    """One part of a request that did not validate."""
+
+    loc: list[str | int] = Field(description=(
+        "Where: ``body``, ``query``, ``path`` or ``header``, then the field's path within it "
+        '(e.g. ["body", "marker_size_m"]).'))
+    msg: str = Field(description="Why, for a person.")
+    type: str = Field(description="The kind of error, e.g. missing, greater_than, json_invalid.")
+
+
+class ValidationProblem(Problem):
+    """Error body of a 422 reply: ``detail`` says what is wrong; when the request did not
+    match its schema, ``errors`` lists each field (the first 20) and ``detail`` sums them
+    up."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "detail": "body.marker_size_m: Input should be greater than 0",
+        "errors": [{"loc": ["body", "marker_size_m"], "msg": "Input should be greater than 0", "type": "greater_than"}],
+    }))
+
+    errors: list[FieldError] = Field(default_factory=list, description=(
+        "The fields that did not validate, the first 20; empty (or absent) when the request was well formed but "
+        "does not fit the stored state (a target id outside the marker family, an image too small to search)."))
 
 
 # --- environments -------------------------------------------------------------------
@@ -87,9 +173,12 @@ def _check_family(name: str) -> str:
 
 
 class EnvironmentCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+    """A new environment: a place, the printed size and code family of its cards."""
 
-    name: Name
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
+        {"name": "studio", "marker_size_m": 0.2, "marker_family": "fido3x3", "classifier_id": None}))
+
+    name: Name = Field(description="A name for people (1-200 characters, no control characters).")
     marker_size_m: float = Field(
         gt=0, le=10, allow_inf_nan=False, description="Side of the printed card in metres."
     )
@@ -100,22 +189,32 @@ class EnvironmentCreate(BaseModel):
 
 
 class EnvironmentUpdate(BaseModel):
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+    """Changes to an environment: the fields given are changed, the others kept."""
 
-    name: Name | None = None
-    marker_size_m: float | None = Field(None, gt=0, le=10, allow_inf_nan=False)
-    classifier_id: int | None = None
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
+        {"name": "studio B"}, {"classifier_id": 2}))
+
+    name: Name | None = Field(None, description="A new name.")
+    marker_size_m: float | None = Field(None, gt=0, le=10, allow_inf_nan=False,
+                                        description="A new side of the printed card in metres.")
+    classifier_id: int | None = Field(None, description="Another classifier to detect with; null: the default.")
 
 
 class EnvironmentOut(BaseModel):
-    id: int
-    name: str
-    marker_size_m: float
-    marker_family: str
-    classifier_id: int | None
-    has_map: bool
-    created_at: datetime
-    updated_at: datetime
+    """An environment: a place with its cards, and whether it has a map yet."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "id": 1, "name": "studio", "marker_size_m": 0.2, "marker_family": "fido3x3", "classifier_id": None,
+        "has_map": True, "created_at": "2026-11-20T09:12:31Z", "updated_at": "2026-11-20T10:03:02Z"}))
+
+    id: int = Field(description="The environment's id (never reused).")
+    name: str = Field(description="Its name.")
+    marker_size_m: float = Field(description="Side of the printed cards in metres.")
+    marker_family: str = Field(description="Code family of the printed cards.")
+    classifier_id: int | None = Field(description="The classifier it detects with; null: the default classifier.")
+    has_map: bool = Field(description="Whether it has a map (surveyed or imported): tracking needs one.")
+    created_at: datetime = Field(description="When it was created (UTC).")
+    updated_at: datetime = Field(description="When it or its map last changed (UTC).")
 
     _tz = field_validator("created_at", "updated_at")(_aware)
 
@@ -138,7 +237,7 @@ MAX_COORDINATE_M = 1e6
 class CameraModel(BaseModel):
     """OpenCV camera: ``K`` 3x3 and distortion ``[k1, k2, p1, p2, k3]``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(_EXAMPLE_CAMERA))
 
     width: int = Field(gt=0, le=20000, description="Image width the intrinsics are for, px.")
     height: int = Field(gt=0, le=20000, description="Image height the intrinsics are for, px.")
@@ -172,9 +271,11 @@ Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE_M, l
 
 
 class MapTarget(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """One target of a map: the 3D centres of its four discs."""
 
-    id: int = Field(ge=0)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(_EXAMPLE_MAP_TARGETS[0]))
+
+    id: int = Field(ge=0, description="The target's id: the code its card carries, in the environment's family.")
     discs: Annotated[list[Annotated[list[Coordinate], Field(min_length=3, max_length=3)]],
                      Field(min_length=4, max_length=4)] = Field(
         description="3D centres of discs 0..3 (top-left, top-right, bottom-right, bottom-left)."
@@ -183,20 +284,26 @@ class MapTarget(BaseModel):
                      Field(min_length=4, max_length=4)] | None = Field(
         None, description="Each disc's position uncertainty from the survey (m, 1 sigma, relative to the map as a "
                           "whole); tracking adds it to the pose's covariance. None: the disc is taken as exact.")
-    n_views: int | None = Field(None, ge=0)
+    n_views: int | None = Field(None, ge=0, description="Registered survey frames the target was seen in; null "
+                                                        "when the map did not come from a survey.")
 
 
 class MapDocument(BaseModel):
     """The map of an environment: its camera and the 3D disc centres of every target (metres)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(_EXAMPLE_MAP))
 
-    frame: Literal["survey", "world"]
-    units: Literal["m"] = "m"
-    camera: CameraModel
-    targets: list[MapTarget] = Field(max_length=MAX_MAP_TARGETS)
-    rms_px: NonNegativeFinite | None = None
-    survey_job_id: str | None = Field(None, max_length=32)
+    frame: Literal["survey", "world"] = Field(description=(
+        "survey: the survey's own frame (metric, its origin and axes arbitrary); world: aligned to the world "
+        "(by an alignment, or measured so)."))
+    units: Literal["m"] = Field("m", description='Always "m": every coordinate is in metres.')
+    camera: CameraModel = Field(description="The camera of the survey; tracking uses it, scaled to each frame's "
+                                            "size, unless a connection gives its own.")
+    targets: list[MapTarget] = Field(max_length=MAX_MAP_TARGETS, description="Every target of the map, each id "
+                                                                             "once.")
+    rms_px: NonNegativeFinite | None = Field(None, description=(
+        "The survey's reprojection RMS over every disc observation it kept, px; null for a map measured otherwise."))
+    survey_job_id: str | None = Field(None, max_length=32, description="The survey job that made the map, or null.")
 
     @field_validator("targets")
     @classmethod
@@ -213,23 +320,39 @@ class MapDocument(BaseModel):
 
 
 class MarkerFamilyOut(BaseModel):
-    name: str
-    cells: int
+    """A code family: how many cards it has and how far apart their codes are."""
+
+    name: str = Field(description="The family's name, as an environment's marker_family gives it.")
+    cells: int = Field(description="Cells per side of the card's code (3: a 3x3 code).")
     min_distance: int = Field(description="Least Hamming distance between codes in any rotation.")
     count: int = Field(description="Number of marker ids: 0 .. count-1.")
 
 
 class MarkerCatalogue(BaseModel):
-    default_family: str
-    families: list[MarkerFamilyOut]
+    """The marker families and the default one."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "default_family": "fido3x3",
+        "families": [{"name": "fido3x3", "cells": 3, "min_distance": 2, "count": 60},
+                     {"name": "fido4x4", "cells": 4, "min_distance": 4, "count": 282}],
+    }))
+
+    default_family: str = Field(description="The family used where none is given.")
+    families: list[MarkerFamilyOut] = Field(description="Every family.")
 
 
 class MarkerLayoutOut(BaseModel):
-    id: int
-    family: str
+    """One card's layout in card units: the card spans 0..1 on both axes, y down."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "id": 7, "family": "fido3x3", "discs": [[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]], "disc_radius": 0.125,
+        "code": [[1, 0, 1], [0, 1, 0], [0, 0, 0]]}))
+
+    id: int = Field(description="The card's id within its family.")
+    family: str = Field(description="The card's code family.")
     discs: list[list[float]] = Field(description="Disc centres in card units, card spans 0..1.")
-    disc_radius: float
-    code: list[list[int]]
+    disc_radius: float = Field(description="Radius of every disc, card units.")
+    code: list[list[int]] = Field(description="The code's cells row by row, upright: 1 black, 0 white.")
 
 
 # --- jobs and classifiers -----------------------------------------------------------
@@ -246,35 +369,188 @@ class JobStatus(StrEnum):
     CANCELLED = "cancelled"
 
 
+class IntrinsicsStd(BaseModel):
+    """One standard deviation of each intrinsic the survey calibrated, from the final
+    bundle adjustment (null where the covariance does not determine it)."""
+
+    focal_px: float | None = Field(description="Of the focal length, px.")
+    principal_point_px: Annotated[list[float | None], Field(min_length=2, max_length=2)] = Field(
+        description="Of the principal point's x and y, px.")
+    k1: float | None = Field(description="Of the radial distortion coefficient k1.")
+    k2: float | None = Field(description="Of the radial distortion coefficient k2.")
+
+
+class CardWarningKind(StrEnum):
+    """What is weak about a part of a surveyed map."""
+
+    FEW_VIEWS = "few views"  # seen in too few registered frames
+    NARROW = "narrow"  # seen over too narrow a range of directions
+    NOT_SURVEYED = "not surveyed"  # detected but not in the map
+    DISCONNECTED = "disconnected"  # in the map, but never seen together with the rest
+    PURE_PAN = "pure pan"  # the camera only turned: no baseline anywhere
+
+
+class CardWarning(BaseModel):
+    """A survey warning about some of the cards, and what to film to fix it."""
+
+    kind: CardWarningKind = Field(description=(
+        "few views: seen in too few registered frames; narrow: seen over too narrow a range of directions; "
+        "not surveyed: detected but not in the map; disconnected: never seen together with the rest of the map; "
+        "pure pan: the camera only turned on one spot."))
+    target_ids: list[int] = Field(description="The ids of the cards it is about.")
+    message: str = Field(description="The warning for a person (also one of the result's warnings).")
+
+
+class FramePose(BaseModel):
+    """A camera pose of the survey's trajectory, in the map's frame (metres)."""
+
+    R: list[list[float]] = Field(description="Rotation, map to camera: x_cam = R @ X_map + t (3x3).")
+    t: list[float] = Field(description="Translation, map to camera (m).")
+    position: list[float] = Field(description="Camera centre in map coordinates, -R^T t (m).")
+
+
+_EXAMPLE_SURVEY_RESULT: dict[str, Any] = {
+    "n_frames": 4, "n_registered": 3, "n_targets": 2, "rms_px": 0.31, "focal_px": 823.4,
+    "principal_point": [318.7, 241.2], "dist": [-0.118, 0.094, 0.0, 0.0, 0.0],
+    "intrinsics_std": {"focal_px": 2.7, "principal_point_px": [1.9, 1.6], "k1": 0.004, "k2": 0.011},
+    "warnings": [_EXAMPLE_WARNING],
+    "card_warnings": [{"kind": "few views", "target_ids": [12], "message": _EXAMPLE_WARNING}],
+    "timing_s": {"intrinsics": 0.4, "initial": 0.2, "register": 3.1, "bundle": 5.8, "scale": 0.1,
+                 "covariance": 0.9},
+    "frames_used": 4, "detections": 7, "feature_tracks": False,
+    "trajectory": [
+        {"R": _EXAMPLE_R, "t": [-0.5918, -0.311, -1.742], "position": [0.95, 0.42, 1.55]},
+        {"R": [[0.9921, -0.0312, -0.1215], [0.0215, 0.9968, -0.0803], [0.1236, 0.0771, 0.9893]],
+         "t": [-0.7804, -0.3327, -1.6321], "position": [0.9995, 0.4321, 1.5238]},
+        None,
+        {"R": [[0.9997, -0.0201, -0.0148], [0.0189, 0.9973, -0.0712], [0.0162, 0.0709, 0.9974]],
+         "t": [-1.0523, -0.3605, -1.5307], "position": [1.0981, 0.4531, 1.4848]},
+    ],
+}
+
+
+class SurveyResult(BaseModel):
+    """The result of a survey job (kind ``survey``): the calibrated camera, how well the
+    map fits, the warnings, and the camera's path through the frames used."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(_EXAMPLE_SURVEY_RESULT))
+
+    n_frames: int = Field(description="Frames the reconstruction used: those read (frames_used), unless it "
+                                      "subsampled them.")
+    n_registered: int = Field(description="Frames whose camera pose the survey found.")
+    n_targets: int = Field(description="Targets in the map.")
+    rms_px: float = Field(description="Reprojection RMS over every disc observation kept, px.")
+    focal_px: float = Field(description="Focal length, px (given, or calibrated by the survey).")
+    principal_point: Annotated[list[float], Field(min_length=2, max_length=2)] = Field(
+        description="Principal point [cx, cy], px.")
+    dist: Annotated[list[float], Field(min_length=5, max_length=5)] = Field(
+        description="Distortion coefficients [k1, k2, p1, p2, k3].")
+    intrinsics_std: IntrinsicsStd | None = Field(None, description=(
+        "How well the survey determined the camera; null when the intrinsics were given."))
+    warnings: list[str] = Field(description="Every warning, for a person: weak cards, a lens known poorly.")
+    card_warnings: list[CardWarning] = Field(default_factory=list, description=(
+        "The warnings about parts of the map, with their kind and the cards they name."))
+    timing_s: dict[str, float] = Field(description=(
+        "Seconds per stage of the reconstruction: intrinsics, initial, register, bundle, scale, covariance."))
+    frames_used: int = Field(description="Frames read from the upload, evenly spaced (at most max_frames).")
+    detections: int = Field(description="Targets detected over those frames, counted once per frame.")
+    feature_tracks: bool = Field(False, description="Whether the scene's own points were tracked too.")
+    trajectory: list[FramePose | None] = Field(default_factory=list, description=(
+        "The camera of each frame read, in order; null for a frame not registered."))
+
+
+_EXAMPLE_TRAINING_RESULT: dict[str, Any] = {
+    "classifier_id": 2, "images": 3,
+    "stats": {"seed": 0, "site_images": 3, "site_targets_verified": 7, "site_positive_windows": 28,
+              "site_negative_windows": 412, "condensation_prototypes": 1843, "condensation_added": 96,
+              "site_stage2_disc_window_accept_before": 0.82, "site_stage2_disc_window_accept_after": 0.97,
+              "site_targets_before": 7, "site_targets_after": 9},
+}
+
+
+class TrainingResult(BaseModel):
+    """The result of a classifier training job (kind ``train_classifier``): the new
+    classifier and how it did on the site's images."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(_EXAMPLE_TRAINING_RESULT))
+
+    classifier_id: int = Field(description="The new classifier: choose it for an environment by this id.")
+    images: int = Field(description="The site images it was trained on.")
+    stats: dict[str, bool | int | float | str] = Field(description=(
+        "Counts and rates of the training: windows labelled on the site images, prototypes added, the share of "
+        "disc and false windows accepted before and after, targets found before and after."))
+
+
+#: The result model of each kind of job, by the kind's name (``app.services.jobs.JobKind``).
+RESULT_MODELS: dict[str, type[SurveyResult] | type[TrainingResult]] = {
+    "survey": SurveyResult,
+    "train_classifier": TrainingResult,
+}
+
+
 class JobOut(BaseModel):
     """A long piece of work: its stage and progress while it runs, its result after."""
 
-    id: str
-    kind: str
-    status: JobStatus
-    progress: float = Field(ge=0, le=1)
-    stage: str
-    message: str
-    environment_id: int | None
-    created_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
-    result: dict[str, Any] | None
-    error: str | None
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "id": _EXAMPLE_JOB_ID, "kind": "survey", "status": "succeeded", "progress": 1.0, "stage": "done",
+        "message": "done", "environment_id": 1, "created_at": "2026-11-20T09:20:04Z",
+        "started_at": "2026-11-20T09:20:05Z", "finished_at": "2026-11-20T09:21:47Z",
+        "result": _EXAMPLE_SURVEY_RESULT,
+        "error": None,
+    }, {
+        "id": "8d1e5b7c2a0f4e6d9b3c5a7e1f2d4c6b", "kind": "train_classifier", "status": "running", "progress": 0.35,
+        "stage": "labelling site images", "message": "", "environment_id": None,
+        "created_at": "2026-11-20T11:02:40Z", "started_at": "2026-11-20T11:02:41Z", "finished_at": None,
+        "result": None, "error": None,
+    }))
+
+    id: str = Field(description="The job's id; its status is at /jobs/{id}.")
+    kind: str = Field(description="survey or train_classifier.")
+    status: JobStatus = Field(description="queued, running, succeeded, failed or cancelled.")
+    progress: float = Field(ge=0, le=1, description="How far it is, 0..1.")
+    stage: str = Field(description="What it is doing now (detecting targets, bundle, ...; done when it succeeded).")
+    message: str = Field(description="More about the stage, for a person (e.g. frame 12 of 120).")
+    environment_id: int | None = Field(description="The environment it works on (a survey's); null for others.")
+    created_at: datetime = Field(description="When it was submitted (UTC).")
+    started_at: datetime | None = Field(description="When a worker started it (UTC); null while queued.")
+    finished_at: datetime | None = Field(description="When it ended (UTC); null while queued or running.")
+    # A kind without a model of its own (there is none in the service) keeps its plain
+    # result rather than failing to show: left out of the schema.
+    result: SurveyResult | TrainingResult | SkipJsonSchema[dict[str, Any]] | None = Field(description=(
+        "Once it succeeded: a SurveyResult for kind survey, a TrainingResult for kind train_classifier; "
+        "null before, and after a failure or a cancellation."))
+    error: str | None = Field(description="Why it failed, for a person; null unless it failed.")
 
     _tz = field_validator("created_at", "started_at", "finished_at")(_aware)
+
+    @field_validator("result", mode="before")
+    @classmethod
+    def _result_of_kind(cls, value: Any, info: ValidationInfo) -> Any:
+        # No tag in the stored result says which model it is: the job's kind does.
+        model = RESULT_MODELS.get(str(info.data.get("kind")))
+        if model is not None and isinstance(value, dict):
+            return model.model_validate(value)
+        return value
 
 
 class ClassifierOut(BaseModel):
     """A trained disc detector: stage-1 parameters and condensed prototypes."""
 
-    id: int
-    name: str
-    is_default: bool
-    source: str
-    training_job_id: str | None
-    created_at: datetime
-    training_stats: dict[str, Any]
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "id": 2, "name": "site A", "is_default": False, "source": "trained",
+        "training_job_id": "8d1e5b7c2a0f4e6d9b3c5a7e1f2d4c6b", "created_at": "2026-11-20T11:06:12Z",
+        "training_stats": _EXAMPLE_TRAINING_RESULT["stats"],
+    }))
+
+    id: int = Field(description="The classifier's id, as an environment's classifier_id gives it.")
+    name: str = Field(description="Its name.")
+    is_default: bool = Field(description="Whether it is the default, which environments without a classifier of "
+                                         "their own detect with.")
+    source: str = Field(description="builtin: shipped with the service; trained: made by a training job.")
+    training_job_id: str | None = Field(description="The training job that made it; null for the builtin one.")
+    created_at: datetime = Field(description="When it was stored (UTC).")
+    training_stats: dict[str, Any] = Field(description="How it was trained and how it scored (keys depend on "
+                                                       "its source).")
 
     _tz = field_validator("created_at")(_aware)
 
@@ -283,6 +559,10 @@ class ClassifierOut(BaseModel):
 
 
 class DetectedTargetOut(BaseModel):
+    """One target found in an image."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(_EXAMPLE_DETECTED))
+
     id: int = Field(description="The target's id: the code it carries, in the environment's marker family.")
     discs: list[list[float]] = Field(
         description="Disc centres [u, v] in pixels: top-left, top-right, bottom-right, bottom-left of the card."
@@ -291,17 +571,32 @@ class DetectedTargetOut(BaseModel):
 
 
 class DetectResponse(BaseModel):
-    width: int
-    height: int
-    targets: list[DetectedTargetOut]
+    """The targets in one image (and, on request, every candidate disc)."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "width": 640, "height": 480, "targets": [_EXAMPLE_DETECTED],
+        "candidates": [[297.41, 170.36, 8.6, 0.21], [365.12, 168.21, 8.4, 0.19], [365.48, 241.03, 8.9, 0.2],
+                       [297.02, 241.39, 9.1, 0.22], [112.6, 403.2, 3.1, 0.12]],
+        "classifier_id": 1, "timing_ms": _EXAMPLE_DETECT_MS,
+    }))
+
+    width: int = Field(description="Width of the image, px.")
+    height: int = Field(description="Height of the image, px.")
+    targets: list[DetectedTargetOut] = Field(description="Targets found and identified, by id.")
     candidates: list[list[float]] | None = Field(
         None, description="With ?candidates=true: every disc that passed the classifier, [u, v, radius, score]."
     )
-    classifier_id: int
-    timing_ms: dict[str, float]
+    classifier_id: int = Field(description="The classifier that detected them.")
+    timing_ms: dict[str, float] = Field(description=(
+        "Milliseconds: candidates, targets (and its stages targets.group, targets.verify, targets.refine, "
+        "targets.identify, targets.complete), and detect, the whole."))
 
 
 class PoseOut(BaseModel):
+    """A camera pose in a map, and how well the targets determine it."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(_EXAMPLE_POSE))
+
     R: list[list[float]] = Field(description="Rotation, map to camera: x_cam = R @ X_map + t (3x3).")
     t: list[float] = Field(description="Translation, map to camera (m).")
     position: list[float] = Field(description="Camera centre in map coordinates, -R^T t (m).")
@@ -317,6 +612,13 @@ class PoseOut(BaseModel):
 
 
 class LocateResponse(BaseModel):
+    """The targets in one image and the camera's pose in the environment's map."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "width": 640, "height": 480, "targets": [_EXAMPLE_DETECTED], "pose": _EXAMPLE_POSE, "pose_error": None,
+        "timing_ms": {"decode": 1.93, "plan": 0.04, **_EXAMPLE_DETECT_MS, "pose": 1.12, "total": 12.71},
+    }))
+
     width: int = Field(description="Width of the image, px.")
     height: int = Field(description="Height of the image, px.")
     targets: list[DetectedTargetOut] = Field(description="Targets detected in the image.")
@@ -364,7 +666,10 @@ class TrackConfig(BaseModel):
     """Client -> server (text message): change how this connection's frames are processed.
     Fields left out take their defaults; the server echoes the whole config it now uses."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(
+        {"type": "config", "method": "nonlinear", "estimate_focal": False, "intrinsics": None, "regions": True,
+         "full_scan_every": 30},
+        {"type": "config", "intrinsics": _EXAMPLE_CAMERA}))
 
     type: Literal["config"] = Field("config", description='Always "config".')
     method: PoseMethod = Field("nonlinear", description=(
@@ -383,6 +688,9 @@ class TrackConfig(BaseModel):
 class TrackHello(BaseModel):
     """Server -> client, first: the connection is accepted and tracks against this map."""
 
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"type": "hello", "environment_id": 1, "camera": _EXAMPLE_CAMERA, "targets": 24}))
+
     type: Literal["hello"] = Field("hello", description='Always "hello".')
     environment_id: int = Field(description="The environment whose map the poses refer to.")
     camera: CameraModel = Field(description="The map's camera; frames of another size are tracked with it "
@@ -392,6 +700,14 @@ class TrackHello(BaseModel):
 
 class TrackFrame(BaseModel):
     """Server -> client: the targets and the camera pose of one processed frame."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "type": "frame", "seq": 42, "width": 640, "height": 480, "targets": [_EXAMPLE_DETECTED],
+        "pose": _EXAMPLE_POSE, "pose_error": None,
+        "timing_ms": {"decode": 1.88, "plan": 0.06, "candidates": 2.31, "targets": 1.42, "detect": 3.9, "regions": 2,
+                      "pose": 1.05, "total": 7.12},
+        "dropped": 0, "scan": "regions", "scan_reason": "regions",
+    }))
 
     type: Literal["frame"] = Field("frame", description='Always "frame".')
     seq: int = Field(description="The frame's index among the binary messages of this connection, from 0.")
@@ -414,6 +730,10 @@ class TrackFrame(BaseModel):
 class TrackError(BaseModel):
     """Server -> client: one message could not be used; the connection stays open."""
 
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"type": "error", "code": "bad_frame", "message": "frame 43: not a JPEG or PNG image (unknown file signature)",
+         "seq": 43}))
+
     type: Literal["error"] = Field("error", description='Always "error".')
     code: TrackErrorCode = Field(description=(
         "bad_message: a text message that is not a config; bad_config: a config that does not validate; "
@@ -428,6 +748,10 @@ class TrackError(BaseModel):
 class TrackRefusal(BaseModel):
     """Server -> client: the connection is refused and closed right after this message (close
     code 1013 for ``too_many_connections``, 1001 for ``idle``, else 1008)."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"type": "error", "code": "no_map",
+         "message": "environment 1 has no map yet: run a survey or PUT one"}))
 
     type: Literal["error"] = Field("error", description='Always "error".')
     code: TrackRefusalCode = Field(description=(
@@ -448,15 +772,54 @@ class TrackRefusal(BaseModel):
 
 #: Every message the server sends on ``/track``.
 TrackServerMessage = TrackHello | TrackFrame | TrackConfig | TrackError | TrackRefusal
+#: The ``/track`` messages, both ways, as the OpenAPI document lists them.
+TRACK_MESSAGES: tuple[type[BaseModel], ...] = (TrackConfig, TrackHello, TrackFrame, TrackError, TrackRefusal)
+
+
+def track_message_schemas() -> dict[str, dict[str, Any]]:
+    """The JSON schemas of the ``/track`` messages and of the models they contain, by
+    model name, referring to each other as ``#/components/schemas/<name>``: ready to merge
+    into an OpenAPI document's ``components.schemas`` (FastAPI lists no WebSocket route
+    there). The parts they share with HTTP replies (`CameraModel`, `DetectedTargetOut`,
+    `PoseOut`) have the same schemas as there."""
+    # The client's message as it is validated, the server's as they are written.
+    modes = [(model, "validation" if model is TrackConfig else "serialization") for model in TRACK_MESSAGES]
+    _, top = models_json_schema(modes, ref_template="#/components/schemas/{model}")
+    return dict(top["$defs"])
+
+
+def complete_openapi(document: dict[str, Any]) -> dict[str, Any]:
+    """The application's OpenAPI document made whole, changed in place and returned (for
+    the application's ``openapi()``; calling it again changes nothing):
+
+    - the ``/track`` messages (`track_message_schemas`) join ``components.schemas``;
+    - each model's examples are put back as the model gives them: FastAPI's encoder of
+      the document drops every null value, even inside examples, which left examples
+      without their required null fields (a job's ``error``) that the model refuses.
+    """
+    schemas = document.setdefault("components", {}).setdefault("schemas", {})
+    if any(model.__name__ not in schemas for model in TRACK_MESSAGES):
+        for name, schema in track_message_schemas().items():
+            schemas.setdefault(name, schema)
+    for name, schema in schemas.items():
+        model = globals().get(name)
+        if isinstance(model, type) and issubclass(model, BaseModel) and "examples" in schema:
+            extra = model.model_config.get("json_schema_extra")
+            if isinstance(extra, dict) and "examples" in extra:
+                schema["examples"] = json.loads(json.dumps(extra["examples"]))
+    return document
 
 
 # --- alignment ----------------------------------------------------------------------
 
 
 class AlignmentPoint(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A disc whose position in the world is known."""
 
-    target_id: int = Field(ge=0)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(
+        {"target_id": 7, "disc": 0, "world": [2.1, 0.0, 1.45]}))
+
+    target_id: int = Field(ge=0, description="The id of the disc's target, in the map.")
     disc: int = Field(
         ge=0, le=3, description="Disc index 0..3: top-left, top-right, bottom-right, bottom-left of the card."
     )
@@ -466,9 +829,15 @@ class AlignmentPoint(BaseModel):
 class AlignmentRequest(BaseModel):
     """Either ``points`` (3 or more, not collinear) or ``origin_target_id``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(
+        {"points": [{"target_id": 7, "disc": 0, "world": [2.1, 0.0, 1.45]},
+                    {"target_id": 7, "disc": 1, "world": [2.22, 0.0, 1.45]},
+                    {"target_id": 12, "disc": 3, "world": [3.9, 0.35, 1.33]}],
+         "allow_scale": True},
+        {"origin_target_id": 7}))
 
-    points: list[AlignmentPoint] | None = Field(None, max_length=4 * MAX_MAP_TARGETS)
+    points: list[AlignmentPoint] | None = Field(None, max_length=4 * MAX_MAP_TARGETS, description=(
+        "Discs with known world positions: three or more, not all on one line."))
     origin_target_id: int | None = Field(
         None, ge=0, description="This target's centre becomes the origin, its plane z = 0, x along disc 0 -> 1."
     )
@@ -482,50 +851,97 @@ class AlignmentRequest(BaseModel):
 
 
 class AlignmentResidual(BaseModel):
-    target_id: int
-    disc: int
-    residual_m: float
+    """How far one given disc lies from its known world position after the fit."""
+
+    target_id: int = Field(description="The disc's target.")
+    disc: int = Field(description="The disc, 0..3.")
+    residual_m: float = Field(description="Distance between the disc moved into the world and its given "
+                                          "position (m).")
 
 
 class AlignmentResult(BaseModel):
-    scale: float
-    R: list[list[float]]
+    """The transform from the map's frame to the world, how well it fits, and the map
+    moved into the world (stored in place of the old one)."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "scale": 1.0021, "R": [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], "t": [-0.83, 1.79, 1.86],
+        "residuals": [{"target_id": 7, "disc": 0, "residual_m": 0.0021},
+                      {"target_id": 7, "disc": 1, "residual_m": 0.0017},
+                      {"target_id": 12, "disc": 3, "residual_m": 0.0024}],
+        "rms_m": 0.0021,
+        "map": {**_EXAMPLE_MAP, "frame": "world", "targets": [
+            {**_EXAMPLE_MAP_TARGETS[0], "discs": [[2.1, -0.4, 1.45], [2.04, -0.5, 1.45], [2.03, -0.5, 1.33],
+                                                  [2.09, -0.4, 1.33]]}]},
+    }))
+
+    scale: float = Field(description="Map metres to world units (1 with allow_scale false).")
+    R: list[list[float]] = Field(description="Rotation, map to world (3x3).")
     t: list[float] = Field(description="x_world = scale * R @ x_map + t")
-    residuals: list[AlignmentResidual]
-    rms_m: float
-    map: MapDocument
+    residuals: list[AlignmentResidual] = Field(description="Each given point's residual; empty for an origin "
+                                                           "target.")
+    rms_m: float = Field(description="RMS of the residuals (m); 0 for an origin target.")
+    map: MapDocument = Field(description="The map in the world frame, now the environment's map.")
 
 
 # --- health -------------------------------------------------------------------------
 
 
 class Readiness(BaseModel):
-    status: Literal["ready", "not ready"]
-    database: str
-    schema_revision: list[str]
-    head_revision: list[str]
+    """Whether the service can serve: its database answers and is at the newest schema, and
+    the detector's kernels are compiled."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"status": "ready", "reason": None, "database": "ok", "schema_revision": ["0002"], "head_revision": ["0002"]},
+        {"status": "not ready", "reason": "compiling the detector's kernels", "database": "ok",
+         "schema_revision": ["0002"], "head_revision": ["0002"]}))
+
+    status: Literal["ready", "not ready"] = Field(description="ready, or not ready (503).")
+    reason: str | None = Field(None, description="Why it is not ready, for a person; null when it is.")
+    database: str = Field(description="ok, or why the database cannot be reached.")
+    schema_revision: list[str] = Field(description="The database schema's migration revision.")
+    head_revision: list[str] = Field(description="The newest migration revision this version knows.")
 
 
 # --- API keys -----------------------------------------------------------------------
 
+#: What an API key may do (docs/security.md): ``read`` every GET but of /keys, ``track``
+#: /track, /detect and /locate, ``admin`` everything.
+Scope = Literal["read", "track", "admin"]
+
 
 class ApiKeyCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A new API key: its name and what it may do."""
 
-    name: Name
-    scopes: list[Literal["read", "track", "admin"]] = Field(min_length=1, max_length=3)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(
+        {"name": "stage camera 1", "scopes": ["read", "track"]}))
+
+    name: Name = Field(description="A name for people (1-200 characters, no control characters).")
+    scopes: list[Scope] = Field(min_length=1, max_length=3, description=(
+        "read: every GET but of /keys; track: /track, /detect and /locate; admin: everything, /keys included."))
 
 
 class ApiKeyOut(BaseModel):
-    id: int
-    name: str
-    scopes: list[str]
-    created_at: datetime
-    revoked_at: datetime | None
+    """An API key as listed: never its secret."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"id": 3, "name": "stage camera 1", "scopes": ["read", "track"], "created_at": "2026-11-20T08:55:10Z",
+         "revoked_at": None}))
+
+    id: int = Field(description="The key's id.")
+    name: str = Field(description="Its name.")
+    scopes: list[str] = Field(description="What it may do: read, track, admin.")
+    created_at: datetime = Field(description="When it was created (UTC).")
+    revoked_at: datetime | None = Field(description="When it was revoked (UTC); null while it is valid.")
 
 
 class ApiKeyCreated(BaseModel):
-    id: int
-    name: str
-    scopes: list[str]
+    """A new API key, with its secret: the only reply that shows it."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"id": 3, "name": "stage camera 1", "scopes": ["read", "track"],
+         "key": "ft_a68bcba0ef37_c2Ks_9LeRpjTXOcxAa-iRYRlURFBpOg_h4RQ8FEgg1M"}))
+
+    id: int = Field(description="The key's id.")
+    name: str = Field(description="Its name.")
+    scopes: list[str] = Field(description="What it may do: read, track, admin.")
     key: str = Field(description="The secret: shown once, only its hash is stored.")

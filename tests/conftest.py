@@ -35,6 +35,10 @@ def settings(tmp_path: Path) -> Settings:
 @pytest.fixture
 def client(settings: Settings) -> Iterator[TestClient]:
     with TestClient(create_app(settings)) as test_client:
+        # On a cold kernel cache the app answers while it compiles: wait as a client would.
+        deadline = time.monotonic() + 300
+        while test_client.get("/readyz").status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
         yield test_client
 
 

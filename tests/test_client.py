@@ -96,7 +96,7 @@ def test_the_client_surveys_with_progress_and_tracks_in_lock_step(server: Server
         environment = client.create_environment("small room", room.marker_size_m)
         seen: list[JobOut] = []
         job = client.survey(environment.id, room.video, progress=seen.append)
-        assert job.status == JobStatus.SUCCEEDED and job.result is not None and job.result["n_targets"] >= 20
+        assert job.status == JobStatus.SUCCEEDED and job.result is not None and job.result.n_targets >= 20
         fractions = [j.progress for j in seen]
         assert fractions == sorted(fractions) and len(set(fractions)) >= 3 and seen[-1].status == "succeeded"
 

@@ -10,7 +10,6 @@ import subprocess
 from pathlib import Path
 
 import httpx
-import pytest
 
 from tests.conftest import running_server
 

@@ -3,7 +3,10 @@ deployments: a real server process answers /readyz and keeps its data across res
 
 from __future__ import annotations
 
+import json
+import re
 import sys
+import time
 from pathlib import Path
 
 import httpx
@@ -155,3 +158,106 @@ def test_requests_without_a_key_are_refused_before_their_body_is_read(tmp_path: 
                     reply += chunk
             assert reply.startswith(b"HTTP/1.1 401"), (path, reply[:200])
             assert b"API key" in reply
+
+
+def _new_lines(log: Path, seen: int) -> list[str]:
+    return log.read_text().splitlines()[seen:]
+
+
+def _wait_for_line(log: Path, seen: int, needle: str, timeout: float = 5.0) -> list[str]:
+    """The log's lines after the first `seen`, once one of them holds `needle`."""
+    deadline = time.monotonic() + timeout
+    while True:
+        lines = _new_lines(log, seen)
+        if any(needle in line for line in lines):
+            return lines
+        assert time.monotonic() < deadline, (needle, lines)
+        time.sleep(0.05)
+
+
+def test_each_request_is_logged_once(tmp_path: Path) -> None:
+    # The service's own line (request id, route template, never the query) is the only
+    # one: uvicorn's access line and the WebSocket library's bare lines repeat it.
+    from websockets.sync.client import connect
+
+    from tests.conftest import example_map
+
+    log = tmp_path / "server.log"
+    with running_server(tmp_path / "data", log) as server:
+        env = httpx.post(f"{server.url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
+        assert httpx.put(f"{server.url}/environments/{env['id']}/map", json=example_map()).status_code == 200
+        for method, path in (("GET", "/environments"), ("GET", "/environments/999"), ("GET", "/livez")):
+            seen = len(log.read_text().splitlines())
+            assert httpx.request(method, f"{server.url}{path}", headers={"X-Request-ID": "once-1"}).status_code
+            _wait_for_line(log, seen, '"once-1"')
+            time.sleep(0.3)  # anything else it would print comes at once
+            lines = _new_lines(log, seen)
+            assert len(lines) == 1, lines
+            assert json.loads(lines[0])["status"] in (200, 404) and json.loads(lines[0])["method"] == method
+
+        seen = len(log.read_text().splitlines())
+        with connect(server.url.replace("http://", "ws://") + f"/track?environment_id={env['id']}") as ws:
+            assert json.loads(ws.recv(timeout=5))["type"] == "hello"
+        _wait_for_line(log, seen, "track connection closed")
+        time.sleep(0.3)
+        lines = _new_lines(log, seen)
+        # the handshake (uvicorn's, the client's address and the URL with any key hidden), then the service's own
+        assert len(lines) == 3, lines
+        assert '"WebSocket /track?environment_id=' in lines[0] and "[accepted]" in lines[0]
+        assert [json.loads(line)["msg"] for line in lines[1:]] == ["track connection opened", "track connection closed"]
+
+
+def test_the_server_answers_while_the_kernels_compile(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # A machine's first start compiles the detector's kernels (numba, 10-30 s): the server
+    # answers meanwhile, /livez at once and /readyz 503 with the reason, and a frame sent
+    # before they are ready waits for them instead of failing.
+    import os
+    import subprocess
+
+    import cv2
+    import numpy as np
+    from websockets.sync.client import connect
+
+    from tests.conftest import FIDOTRACK_SERVE, example_map
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba-cache"))  # cold: nothing compiled yet
+    port, log = free_port(), tmp_path / "server.log"
+    url = f"http://127.0.0.1:{port}"
+    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(tmp_path / "data"), "FIDOTRACK_PORT": str(port)}
+    started = time.monotonic()
+    with log.open("ab") as out:
+        process = subprocess.Popen(FIDOTRACK_SERVE, env=env, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        while True:
+            try:
+                if httpx.get(f"{url}/livez", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert process.poll() is None, log.read_text()
+            # imports and migrations, 2-3.5 s on two busy cores; not the compilation
+            assert time.monotonic() - started < 8.0, log.read_text()
+            time.sleep(0.05)
+        ready = httpx.get(f"{url}/readyz")
+        assert ready.status_code == 503, ready.text
+        assert ready.json()["status"] == "not ready" and ready.json()["reason"] == "compiling the detector's kernels"
+        assert "compiling the detector's kernels" in log.read_text()
+
+        created = httpx.post(f"{url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
+        assert httpx.put(f"{url}/environments/{created['id']}/map", json=example_map()).status_code == 200
+        frame = cv2.imencode(".png", np.full((480, 640), 200, np.uint8))[1].tobytes()
+        with connect(f"ws://127.0.0.1:{port}/track?environment_id={created['id']}", open_timeout=5) as ws:
+            assert json.loads(ws.recv(timeout=5))["type"] == "hello"
+            ws.send(frame)
+            reply = json.loads(ws.recv(timeout=240))
+        assert reply["type"] == "frame" and reply["targets"] == [], reply
+
+        while (ready := httpx.get(f"{url}/readyz")).status_code != 200:
+            assert ready.status_code == 503 and ready.json()["reason"] == "compiling the detector's kernels"
+            assert time.monotonic() - started < 240, log.read_text()
+            time.sleep(0.2)
+        assert ready.json()["status"] == "ready" and ready.json()["reason"] is None
+        assert re.search(r"kernels ready \(\d+\.\d s\)", log.read_text()), log.read_text()
+    finally:
+        process.terminate()
+        process.wait(30)

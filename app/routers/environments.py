@@ -6,49 +6,63 @@ from fastapi import APIRouter, Response, status
 
 from app.deps import RowId, SessionDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, Problem
+from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, Problem, ValidationProblem
 from app.services import environments
 
 router = APIRouter(prefix="/environments", tags=["environments"], route_class=JsonBodyRoute)
 _404 = {404: {"model": Problem, "description": "No such environment"}}
+_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=EnvironmentOut)
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=EnvironmentOut, summary="Create an environment",
+             responses=_422)
 def create_environment(spec: EnvironmentCreate, session: SessionDep, response: Response) -> EnvironmentOut:
+    """A new environment, without a map yet (``Location: /environments/{id}``). Its
+    marker family cannot change later; its name, card size and classifier can."""
     created = environments.create(session, spec)
     response.headers["Location"] = f"/environments/{created.id}"
     return created
 
 
-@router.get("", response_model=list[EnvironmentOut])
+@router.get("", response_model=list[EnvironmentOut], summary="List the environments")
 def list_environments(session: SessionDep) -> list[EnvironmentOut]:
+    """Every environment, oldest first."""
     return environments.list_all(session)
 
 
-@router.get("/{environment_id}", response_model=EnvironmentOut, responses=_404)
+@router.get("/{environment_id}", response_model=EnvironmentOut, summary="Get an environment",
+            responses={**_404, **_422})
 def get_environment(environment_id: RowId, session: SessionDep) -> EnvironmentOut:
+    """One environment: its cards, its classifier and whether it has a map."""
     return environments.get(session, environment_id)
 
 
-@router.patch("/{environment_id}", response_model=EnvironmentOut, responses=_404)
+@router.patch("/{environment_id}", response_model=EnvironmentOut, summary="Change an environment",
+              responses={**_404, **_422})
 def update_environment(
     environment_id: RowId, changes: EnvironmentUpdate, session: SessionDep
 ) -> EnvironmentOut:
+    """Rename an environment, or change its printed card size or its classifier: the
+    fields given change, the others stay."""
     return environments.update(session, environment_id, changes)
 
 
-@router.delete("/{environment_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_404)
+@router.delete("/{environment_id}", status_code=status.HTTP_204_NO_CONTENT, summary="Delete an environment",
+               responses={**_404, **_422})
 def delete_environment(environment_id: RowId, session: SessionDep) -> None:
+    """Delete an environment with its map and its jobs."""
     environments.delete(session, environment_id)
 
 
-@router.get("/{environment_id}/map", response_model=MapDocument, responses=_404)
+@router.get("/{environment_id}/map", response_model=MapDocument, summary="Export the map",
+            responses={**_404, **_422, 409: {"model": Problem, "description": "The environment has no map yet"}})
 def get_map(environment_id: RowId, session: SessionDep) -> MapDocument:
     """The environment's map: camera and 3D disc centres of every target."""
     return environments.get_map(session, environment_id)
 
 
-@router.put("/{environment_id}/map", response_model=MapDocument, responses=_404)
+@router.put("/{environment_id}/map", response_model=MapDocument, summary="Import a map",
+            responses={**_404, **_422})
 def put_map(environment_id: RowId, document: MapDocument, session: SessionDep) -> MapDocument:
     """Replace the map whole (a map measured by hand, or an exported one). A document
     with wrong shapes or non-finite numbers is refused whole and the stored map stays."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
 from sqlalchemy.exc import SQLAlchemyError
@@ -16,15 +16,17 @@ from app.services.metrics import CONTENT_TYPE_LATEST
 router = APIRouter(tags=["health"], route_class=JsonBodyRoute)
 
 
-@router.get("/livez")
+@router.get("/livez", summary="Check the process is up")
 def livez() -> dict[str, str]:
     """The process is up and serving."""
     return {"status": "ok"}
 
 
-@router.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness}})
-def readyz(engine: EngineDep) -> Response:
-    """Ready when the database answers and its schema is at the newest migration."""
+@router.get("/readyz", response_model=Readiness, summary="Check the service is ready",
+            responses={503: {"model": Readiness, "description": "Not ready yet: the reason says why"}})
+def readyz(engine: EngineDep, request: Request) -> Response:
+    """Ready when the database answers, its schema is at the newest migration and the
+    detector's kernels are compiled; 503 with the reason until then."""
     heads = sorted(head_revisions())
     try:
         with engine.connect() as connection:
@@ -33,17 +35,23 @@ def readyz(engine: EngineDep) -> Response:
         database = "ok"
     except SQLAlchemyError as exc:
         current, database = [], f"unreachable: {type(exc).__name__}"
-    ready = database == "ok" and current == heads
+    if database != "ok":
+        reason = f"database {database}"
+    elif current != heads:
+        reason = "the database schema is not at the newest migration"
+    else:
+        reason = request.app.state.kernels.not_ready
     body = Readiness(
-        status="ready" if ready else "not ready",
+        status="ready" if reason is None else "not ready",
+        reason=reason,
         database=database,
         schema_revision=current,
         head_revision=heads,
     )
-    return JSONResponse(body.model_dump(), status_code=200 if ready else 503)
+    return JSONResponse(body.model_dump(), status_code=200 if reason is None else 503)
 
 
-@router.get("/metrics", response_class=Response)
+@router.get("/metrics", response_class=Response, summary="Get the Prometheus metrics")
 def metrics(registry: MetricsDep) -> Response:
     """Prometheus text exposition."""
     return Response(registry.exposition(), media_type=CONTENT_TYPE_LATEST)

@@ -8,11 +8,14 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem
+from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem, ValidationProblem
 from app.services import alignments, surveys
 from app.settings import MAX_SURVEY_FILES
 
 router = APIRouter(prefix="/environments", tags=["surveys"], route_class=JsonBodyRoute)
+_404 = {404: {"model": Problem, "description": "No such environment"}}
+_422 = {422: {"model": ValidationProblem, "description": "The request does not validate, or does not fit the "
+                                                         "environment"}}
 
 
 @router.post(
@@ -22,7 +25,10 @@ router = APIRouter(prefix="/environments", tags=["surveys"], route_class=JsonBod
     # that with a bare 400 before the service's limit (`max_survey_images`) is applied.
     form_limits={"max_files": MAX_SURVEY_FILES + 1},
     response_model=JobOut,
-    responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem}},
+    summary="Survey an environment from a video",
+    responses={**_404, 413: {"model": Problem, "description": "The upload is over a limit"},
+               415: {"model": Problem, "description": "Not a supported video or image"}, **_422,
+               429: {"model": Problem, "description": "Too many jobs are queued or running"}},
 )
 def start_survey(
     environment_id: RowId,
@@ -32,7 +38,7 @@ def start_survey(
     runner: JobsDep,
     memory: ImageMemoryDep,
     video: Annotated[UploadFile | None, File(description="Calibration video: MP4, MOV or AVI.")] = None,
-    images: Annotated[list[UploadFile] | None, File(description="Or: JPEG/PNG frames, in order.")] = None,
+    images: Annotated[list[UploadFile] | None, File(description="Or: JPEG/PNG frames, in order (one size).")] = None,
     marker_size_m: Annotated[float | None, Form(description="Printed card side; default: the environment's.")] = None,
     intrinsics: Annotated[str | None, Form(description='JSON {"width","height","K","dist"}: fixes the camera.')] = None,
     max_frames: Annotated[int | None, Form(description="Frames to use, evenly spaced (default from settings).")] = None,
@@ -58,7 +64,8 @@ def start_survey(
 @router.post(
     "/{environment_id}/alignment",
     response_model=AlignmentResult,
-    responses={404: {"model": Problem}, 422: {"model": Problem}},
+    summary="Align the map to the world",
+    responses={**_404, **_422, 409: {"model": Problem, "description": "The environment has no map yet"}},
 )
 def align_map(environment_id: RowId, spec: AlignmentRequest, session: SessionDep) -> AlignmentResult:
     """Move the map into world coordinates: a similarity transform (scale, rotation,

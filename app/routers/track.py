@@ -10,7 +10,8 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from app.deps import ImageWorkersDep, RowId, SettingsDep, TrackStreamsDep
 from app.routers.json_bodies import JsonBodyRoute
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
-from app.schemas import LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
+from app.schemas import (LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage,
+                         ValidationProblem)
 from app.services.streaming import ClientGone, Refused
 
 router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
@@ -19,17 +20,24 @@ router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
 @router.post(
     "/environments/{environment_id}/locate",
     response_model=LocateResponse,
+    summary="Locate the camera from one image",
     openapi_extra=IMAGE_BODY_DOC,
-    responses={404: {"model": Problem}, 413: {"model": Problem}, 415: {"model": Problem}, 422: {"model": Problem},
-               503: {"model": Problem}},
+    responses={404: {"model": Problem, "description": "No such environment"},
+               413: {"model": Problem, "description": "The image is over a limit"},
+               415: {"model": Problem, "description": "Not a JPEG or PNG"},
+               409: {"model": Problem, "description": "The environment has no map yet"},
+               422: {"model": ValidationProblem, "description": "The request does not validate, or the image cannot "
+                                                               "be used"},
+               503: {"model": Problem, "description": "The server is busy with other images; retry"}},
 )
 async def locate(
     environment_id: RowId,
     request: Request,
     settings: SettingsDep,
     workers: ImageWorkersDep,
-    method: Annotated[str, Query(pattern="^(nonlinear|posit|mean|single)$")] = "nonlinear",
-    estimate_focal: bool = False,
+    method: Annotated[str, Query(pattern="^(nonlinear|posit|mean|single)$", description=(
+        "Pose estimator, as in the /track config: nonlinear (the paper's), posit, mean or single."))] = "nonlinear",
+    estimate_focal: Annotated[bool, Query(description="Free the focal length (a zoom lens).")] = False,
 ) -> LocateResponse:
     """Detections and the camera pose for one image (``pose`` is null with a reason
     in ``pose_error`` when the visible targets do not determine it)."""
@@ -54,6 +62,10 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
     default; ``full_scan_every``). Each reply says ``scan`` ("full" or "regions") and
     ``scan_reason`` (first, regions, periodic, lost, fallback, wide, stale, camera, off);
     ``timing_ms.regions`` counts the regions searched.
+
+    The messages are `TrackConfig` (client to server), `TrackHello`, `TrackFrame`,
+    `TrackError` and `TrackRefusal` (server to client), listed among the OpenAPI
+    document's schemas; docs/protocol.md is the protocol in full.
     """
     await websocket.accept()
     channel = _WebSocketChannel(websocket)

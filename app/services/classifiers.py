@@ -1,5 +1,6 @@
 """Classifiers as data: stored as ``.npy`` arrays, the default installed at first start
-(new ones come from training jobs, ``app.services.training``)."""
+(new ones come from training jobs, ``app.services.training``); a classifier nothing uses
+may be deleted."""
 
 from __future__ import annotations
 
@@ -11,9 +12,15 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.detection import DiscClassifier, load_default_classifier
-from app.models import Classifier, ClassifierArray, Environment
-from app.schemas import ClassifierOut
-from app.services.errors import NotFound, get_or_404
+from app.models import Classifier, ClassifierArray, Environment, Job
+from app.schemas import ClassifierOut, JobStatus
+from app.services.errors import Conflict, NotFound, get_or_404
+
+#: The keys of a job's stored parameters that name a classifier it will load (the
+#: survey's detector, the classifier a training job adapts).
+_JOB_CLASSIFIER_PARAMS = ("classifier_id", "base_classifier_id")
+#: How many environments a refusal names before it counts the rest.
+_NAMED_ENVIRONMENTS = 10
 
 
 def _to_npy(array: np.ndarray) -> bytes:
@@ -84,3 +91,30 @@ def list_all(session: Session) -> list[ClassifierOut]:
 
 def get(session: Session, classifier_id: int) -> ClassifierOut:
     return to_out(get_row(session, classifier_id))
+
+
+def delete(session: Session, classifier_id: int) -> None:
+    """Delete a classifier and its arrays. Conflict (409) for the default classifier,
+    for one that an environment detects with (naming the environments) and for one that
+    a queued or running job will load; NotFound for an unknown id."""
+    row = get_row(session, classifier_id)
+    if row.is_default:
+        raise Conflict(f"classifier {classifier_id} is the default classifier, which every environment without "
+                       "a classifier of its own detects with; it cannot be deleted")
+    users = session.execute(select(Environment.id, Environment.name).where(Environment.classifier_id == classifier_id)
+                            .order_by(Environment.id)).all()
+    if users:
+        named = ", ".join(f"{env_id} ({name!r})" for env_id, name in users[:_NAMED_ENVIRONMENTS])
+        more = len(users) - _NAMED_ENVIRONMENTS
+        named += f" and {more} more" if more > 0 else ""
+        raise Conflict(f"classifier {classifier_id} is used by environment{'s' if len(users) > 1 else ''} {named}; "
+                       "give them another classifier (PATCH /environments/{id} with classifier_id) first")
+    active = session.scalars(select(Job).where(Job.status.in_((JobStatus.QUEUED, JobStatus.RUNNING)))
+                             .order_by(Job.created_at)).all()
+    waiting = [job.id for job in active
+               if any((job.params or {}).get(key) == classifier_id for key in _JOB_CLASSIFIER_PARAMS)]
+    if waiting:
+        raise Conflict(f"classifier {classifier_id} is used by job{'s' if len(waiting) > 1 else ''} "
+                       f"{', '.join(waiting)}, queued or running; delete it once they end")
+    session.delete(row)
+    session.commit()

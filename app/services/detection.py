@@ -1,13 +1,15 @@
 """Detection for the API: run the environment's (or a chosen) classifier on a client
-image and shape the reply. Detectors are built once and shared."""
+image and shape the reply, as JSON or as the image with the detections drawn over it.
+Detectors are built once and shared."""
 
 from __future__ import annotations
 
 import threading
 
+import cv2
 from sqlalchemy.orm import Session
 
-from app.core.detection import Detection, Detector
+from app.core.detection import Detection, Detector, draw_detections
 from app.core.markers import FAMILIES
 from app.schemas import DetectedTargetOut, DetectResponse
 from app.services import classifiers, images
@@ -53,15 +55,39 @@ def to_response(detection: Detection, width: int, height: int, classifier_id: in
     )
 
 
+def _detector(session: Session, cache: DetectorCache, classifier_id: int | None, family: str) -> tuple[int, Detector]:
+    """The chosen classifier's id (the default's when None) and its detector for `family`."""
+    if family not in FAMILIES:
+        raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
+    if classifier_id is not None:
+        if not 0 <= classifier_id <= MAX_ID:
+            raise NotFound(f"classifier {classifier_id} not found")
+        # Checked even when its detector is cached: a deleted classifier is not used again.
+        classifiers.get_row(session, classifier_id)
+    chosen = classifier_id if classifier_id is not None else classifiers.default_id(session)
+    return chosen, cache.get(session, chosen, family)
+
+
 def detect(session: Session, cache: DetectorCache, settings: Settings, memory: images.MemoryBudget, data: bytes, *,
            classifier_id: int | None, family: str, with_candidates: bool) -> DetectResponse:
     """The targets in one client image (and every candidate disc, `with_candidates`)."""
-    if family not in FAMILIES:
-        raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
-    if classifier_id is not None and not 0 <= classifier_id <= MAX_ID:
-        raise NotFound(f"classifier {classifier_id} not found")
-    chosen = classifier_id if classifier_id is not None else classifiers.default_id(session)
-    detector = cache.get(session, chosen, family)
+    chosen, detector = _detector(session, cache, classifier_id, family)
     with images.decoded(data, settings, memory) as gray:
         detection = detector.detect(gray)
         return to_response(detection, gray.shape[1], gray.shape[0], chosen, with_candidates)
+
+
+def detect_drawn(session: Session, cache: DetectorCache, settings: Settings, memory: images.MemoryBudget,
+                 data: bytes, *, classifier_id: int | None, family: str) -> bytes:
+    """The client image as a PNG of its size with its targets (quadrilateral, discs, id)
+    and every candidate disc drawn over it."""
+    _, detector = _detector(session, cache, classifier_id, family)
+    with images.decoded(data, settings, memory) as gray:
+        detection = detector.detect(gray)
+        # Drawn and encoded inside the image's share of the memory budget: the colour copy
+        # and the PNG (a few bytes a pixel) take less than detection held at its peak.
+        drawn = draw_detections(gray, detection.targets, detection.candidates)
+        ok, png = cv2.imencode(".png", drawn)
+        if not ok:
+            raise RuntimeError("OpenCV could not encode the drawn image as PNG")
+        return png.tobytes()

@@ -6,10 +6,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.markers import get_family
+from app.db import utcnow
 from app.models import Environment, SurveyMap
 from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument
 from app.services import classifiers
-from app.services.errors import Invalid, NotFound, get_or_404
+from app.services.errors import Invalid, NoMap, NotFound, get_or_404
 
 
 def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
@@ -91,7 +92,7 @@ def get_map(session: Session, environment_id: int) -> MapDocument:
     get_row(session, environment_id)
     stored = stored_map(session, environment_id)
     if stored is None:
-        raise NotFound(f"environment {environment_id} has no map yet: run a survey or PUT one")
+        raise NoMap(environment_id)
     return MapDocument.model_validate(stored.document)
 
 
@@ -122,3 +123,5 @@ def stage_map(session: Session, environment_id: int, document: MapDocument) -> N
     stored.rms_px = document.rms_px
     stored.survey_job_id = document.survey_job_id
     stored.document = document.model_dump(mode="json")
+    # The map is part of the environment: its row's own onupdate sees only its columns.
+    environment.updated_at = utcnow()

@@ -44,6 +44,21 @@ class Conflict(ServiceError):
     status_code = 409
 
 
+class NoMap(Conflict):
+    """The environment exists but has no map yet: every route that needs a map answers
+    this one way. 409, not 404: the environment is there and the client can resolve the
+    conflict (run a survey or PUT a map) and retry, while 404 says the id itself is
+    wrong; /track makes the same distinction (``unknown_environment``, ``no_map``)."""
+
+    def __init__(self, environment_id: int) -> None:
+        super().__init__(f"environment {environment_id} has no map yet: run a survey or PUT one")
+        self.environment_id = environment_id
+
+    def __reduce__(self) -> tuple[type, tuple[int]]:
+        # Raised in the image worker processes too: pickled back by its argument, not its message.
+        return (NoMap, (self.environment_id,))
+
+
 class TooMany(ServiceError):
     status_code = 429
 

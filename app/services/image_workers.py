@@ -1,4 +1,5 @@
-"""``/detect`` and ``/locate`` in worker processes of their own.
+"""``/detect`` (its JSON reply and its drawn image) and ``/locate`` in worker processes of
+their own.
 
 Their images are whole frames sent by any client at any rate: in the web process they
 would share its interpreter (the GIL) and its cores with the ``/track`` streams, which
@@ -85,6 +86,12 @@ def _detect(worker: _Worker, data: bytes, classifier_id: int | None, family: str
                                 classifier_id=classifier_id, family=family, with_candidates=with_candidates)
 
 
+def _detect_drawn(worker: _Worker, data: bytes, classifier_id: int | None, family: str) -> bytes:
+    with worker.sessions() as session:
+        return detection.detect_drawn(session, worker.detectors, worker.settings, worker.memory, data,
+                                      classifier_id=classifier_id, family=family)
+
+
 def _locate(worker: _Worker, environment_id: int, data: bytes, config: TrackConfig) -> LocateResponse:
     return worker.tracking.locate(environment_id, data, config)
 
@@ -122,6 +129,10 @@ class ImageWorkers:
     async def detect(self, data: bytes, *, classifier_id: int | None, family: str, with_candidates: bool
                      ) -> DetectResponse:
         return await self._run(_detect, data, classifier_id, family, with_candidates)
+
+    async def detect_drawn(self, data: bytes, *, classifier_id: int | None, family: str) -> bytes:
+        """The image as a PNG with its detections drawn (`detection.detect_drawn`)."""
+        return await self._run(_detect_drawn, data, classifier_id, family)
 
     async def locate(self, environment_id: int, data: bytes, config: TrackConfig) -> LocateResponse:
         return await self._run(_locate, environment_id, data, config)

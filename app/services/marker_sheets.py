@@ -2,8 +2,11 @@
 
 Each card is drawn at exactly the requested side, with a dashed cut line around it and
 its family and ID printed below the card, inside the cut line (so the label stays with
-the card and marks its bottom edge). Every page carries a footer with the card side and
-a 100 mm scale bar, because a printer that "fits to page" silently changes the scale of
+the card and marks its bottom edge). The card itself has no printed edge: it is the
+white square the discs sit in, and the cut line runs a few millimetres outside it so
+that a crooked cut cannot eat the white margin the detector reads around the discs;
+each page says so (`cut_note`). Every page carries a footer with the card side and a
+100 mm scale bar, because a printer that "fits to page" silently changes the scale of
 the whole survey.
 """
 
@@ -195,6 +198,14 @@ def _fit_font(text: str, font: str, width_pt: float) -> float:
     return width_pt / w1 if w1 > 0 else 12.0
 
 
+def cut_note(size_mm: float) -> str:
+    """The page's line on where to cut, and why not on the card's edge."""
+    return (
+        f"Cut on the dashed lines, {CUT_OFFSET_MM:g} mm outside each {size_mm:.1f} mm card ({LABEL_BAND_MM:g} mm "
+        "below: its label), so that a crooked cut keeps the white the detector needs around the discs."
+    )
+
+
 def _draw_footer(canvas: Canvas, family: str, size_mm: float, page: int, pages: int) -> None:
     """Footer: scale reminder text and a 100 mm ruler with ticks every 10 mm."""
     canvas.saveState()
@@ -208,7 +219,10 @@ def _draw_footer(canvas: Canvas, family: str, size_mm: float, page: int, pages: 
     )
     canvas.setFillGray(0.0)
     canvas.setFont(font, min(font_size, _fit_font(text, font, avail)))
-    canvas.drawString(x, (PAGE_MARGIN_MM + 11) * mm, text)
+    canvas.drawString(x, (PAGE_MARGIN_MM + 10) * mm, text)
+    note = cut_note(size_mm)
+    canvas.setFont(font, min(font_size, _fit_font(note, font, avail)))
+    canvas.drawString(x, (PAGE_MARGIN_MM + 13.5) * mm, note)
 
     # Scale bar: 0..100 mm, major ticks every 10 mm, minor every 5 mm.
     y = (PAGE_MARGIN_MM + 4) * mm

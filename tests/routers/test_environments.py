@@ -82,7 +82,7 @@ def test_patch_refuses_null_and_unknown_classifier(client: TestClient) -> None:
 
 def test_map_import_and_export(client: TestClient) -> None:
     env = _create(client)
-    assert client.get(f"/environments/{env['id']}/map").status_code == 404
+    assert client.get(f"/environments/{env['id']}/map").status_code == 409  # no map yet
     document = example_map(3)
     reply = client.put(f"/environments/{env['id']}/map", json=document)
     assert reply.status_code == 200, reply.text

@@ -118,7 +118,7 @@ def test_survey_with_feature_tracks_maps_the_room_from_the_video(client: TestCli
 
 def test_alignment_refuses_bad_points(client: TestClient) -> None:
     env = _environment(client)
-    assert client.post(f"/environments/{env}/alignment", json={"origin_target_id": 0}).status_code == 404
+    assert client.post(f"/environments/{env}/alignment", json={"origin_target_id": 0}).status_code == 409
     client.put(f"/environments/{env}/map", json=example_map(3))
     collinear = [{"target_id": 0, "disc": 0, "world": [0, 0, 0]}, {"target_id": 1, "disc": 0, "world": [1, 0, 0]},
                  {"target_id": 2, "disc": 0, "world": [2, 0, 0]}]

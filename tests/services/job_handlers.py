@@ -4,9 +4,12 @@ registered as the service's own are."""
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from pydantic import BaseModel
 
+from app.schemas import MapDocument
+from app.services import environments
 from app.services.jobs import JobContext, JobResult, job_handler
 
 
@@ -40,3 +43,16 @@ def crash(params: NoParams, context: JobContext) -> JobResult:
     """Fail on a fault of the service's own (an indexing bug), not on the input."""
     context.progress("crashing", 0.5)
     raise IndexError("index 0 is out of bounds for axis 0 with size 0")
+
+
+class StoreMapParams(BaseModel):
+    document: dict[str, Any]
+
+
+@job_handler("store_map", StoreMapParams)
+def store_map(params: StoreMapParams, context: JobContext) -> JobResult:
+    """Store a map as a survey's last step does: staged in the transaction that marks the job succeeded."""
+    assert context.environment_id is not None
+    with context.finishing({"stored": True}) as session:
+        environments.stage_map(session, context.environment_id, MapDocument.model_validate(params.document))
+    return {"stored": True}

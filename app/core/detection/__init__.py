@@ -14,6 +14,7 @@ A frame goes through the stages in this order, each in its own module:
 - `disc_fit`: for the survey, small discs' centres fitted with a model of the card
   around them.
 - `detector.Detector` runs it all on a frame, or on the regions a tracked pose predicts.
+- `draw.draw_detections` draws what was found over the frame, for a person to check.
 
 Hot loops are numba kernels kept beside their stage (`_candidates_kernels`,
 `_grouping_kernels`, ...; conventions in `_numba`); `warm_up` compiles them all (or
@@ -30,6 +31,7 @@ from app.core.detection import (
 from app.core.detection.candidates import MIN_SIDE, DiscClassifier, find_candidates, load_default_classifier
 from app.core.detection.detector import Detection, Detector
 from app.core.detection.disc_fit import fit_disc_centres
+from app.core.detection.draw import draw_detections
 from app.core.detection.grouping import group_candidates
 from app.core.detection.targets import DetectedTarget, assemble_targets
 from app.core.geometry import _kernels as _geometry_kernels
@@ -41,6 +43,7 @@ __all__ = [
     "Detector",
     "DiscClassifier",
     "assemble_targets",
+    "draw_detections",
     "find_candidates",
     "fit_disc_centres",
     "group_candidates",

@@ -24,6 +24,9 @@ from app.services.errors import TooMany, get_or_404
 
 #: A job in one of these may still change.
 ACTIVE = (JobStatus.QUEUED, JobStatus.RUNNING)
+#: Most jobs one listing returns, and how many it returns unless told.
+MAX_LISTED = 500
+DEFAULT_LISTED = 50
 
 
 def job_out(job: Job) -> JobOut:
@@ -62,6 +65,22 @@ def create(session: Session, kind: str, params: BaseModel, *, environment_id: in
 
 def get(session: Session, job_id: str) -> Job:
     return get_or_404(session, Job, job_id, "job")
+
+
+def list_recent(session: Session, *, kind: str | None = None, status: JobStatus | None = None,
+                environment_id: int | None = None, limit: int = DEFAULT_LISTED) -> list[Job]:
+    """The newest `limit` jobs (at most `MAX_LISTED`) of the given kind, status and
+    environment (each filter only when given), newest first."""
+    query = select(Job)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    if status is not None:
+        query = query.where(Job.status == status.value)
+    if environment_id is not None:
+        query = query.where(Job.environment_id == environment_id)
+    # Ids break ties between jobs created in the same instant: the same order on every call.
+    query = query.order_by(Job.created_at.desc(), Job.id.desc()).limit(min(max(limit, 1), MAX_LISTED))
+    return list(session.scalars(query))
 
 
 def count_active(session: Session) -> int:
