@@ -196,6 +196,16 @@ def _map(args: argparse.Namespace) -> int:
 
     try:
         with _client(args) as client:
+            if args.action == "restore":
+                document = client.restore_map(args.environment, args.version)
+                print(f"environment {args.environment}: restored a map of {len(document.targets)} cards "
+                      f"({document.frame} frame)", file=sys.stderr)
+                return 0
+            if args.action == "versions":
+                for version in client.map_versions(args.environment):
+                    print(f"{version.version:6d}  {version.frame:6s} {version.n_targets:4d} cards  replaced by "
+                          f"{version.replaced_by.value} at {version.replaced_at:%Y-%m-%d %H:%M:%S}")
+                return 0
             if args.action == "put":
                 document = client.put_map(args.environment, json.loads(Path(args.file).read_text()))
                 print(f"stored a map of {len(document.targets)} cards in environment {args.environment}",
@@ -410,10 +420,12 @@ def build_parser() -> argparse.ArgumentParser:
     track.set_defaults(run=_track)
 
     maps = commands.add_parser("map", help="show, export or import an environment's map")
-    maps.add_argument("action", choices=["show", "get", "put"],
-                      help="show: a table of the cards; get: the map as JSON; put: store a JSON map")
+    maps.add_argument("action", choices=["show", "get", "put", "versions", "restore"],
+                      help="show: a table of the cards; get: the map as JSON; put: store a JSON map; versions: the "
+                           "maps earlier changes replaced; restore: make one current again (the newest by default)")
     maps.add_argument("file", nargs="?", help="get: write here (default: standard output); put: read from here")
     maps.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
+    maps.add_argument("--version", type=int, help="restore: the version to restore (from `map versions`)")
     on_service(maps)
     maps.set_defaults(run=_map)
 

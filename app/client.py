@@ -34,6 +34,7 @@ from app.schemas import (
     JobStatus,
     LocateResponse,
     MapDocument,
+    MapVersionOut,
     TrackConfig,
     TrackFrame,
     TrackHello,
@@ -189,6 +190,16 @@ class Client:
         """Store a map (an import, or one surveyed elsewhere) as the environment's map."""
         body = document.model_dump(mode="json") if isinstance(document, MapDocument) else document
         return MapDocument.model_validate(self._json("PUT", f"/environments/{environment_id}/map", json=body))
+
+    def map_versions(self, environment_id: int) -> list[MapVersionOut]:
+        """The maps earlier changes replaced, the newest first."""
+        return [MapVersionOut.model_validate(v) for v in self._json("GET", f"/environments/{environment_id}/map/versions")]
+
+    def restore_map(self, environment_id: int, version: int | None = None) -> MapDocument:
+        """Make an earlier map current again: the newest, or `version`."""
+        body = {"version": version} if version is not None else {}
+        return MapDocument.model_validate(self._json("POST", f"/environments/{environment_id}/map/restore",
+                                                     json=body))
 
     def align(self, environment_id: int, request: AlignmentRequest | dict[str, Any]) -> AlignmentResult:
         """Move the map into world coordinates (known points, or an origin card)."""

@@ -81,6 +81,24 @@ class SurveyMap(Base):
     environment: Mapped[Environment] = relationship(back_populates="map")
 
 
+class MapVersion(Base):
+    """A map an environment had before a change replaced it (an import, a survey, an
+    alignment, a restore): kept so that no single call loses a survey. The newest
+    ``MAP_VERSIONS_KEPT`` of each environment are kept."""
+
+    __tablename__ = "map_versions"
+    __table_args__ = {"sqlite_autoincrement": True}
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    environment_id: Mapped[int] = mapped_column(ForeignKey("environments.id", ondelete="CASCADE"), index=True)
+    frame: Mapped[str] = mapped_column(String(16))
+    n_targets: Mapped[int] = mapped_column(Integer)
+    survey_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    document: Mapped[dict[str, Any]] = mapped_column(JSON)
+    replaced_by: Mapped[str] = mapped_column(String(16))
+    replaced_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
 class Classifier(Base):
     """A trained disc detector (paper §4): stage-1 parameters and condensed prototypes."""
 

@@ -316,6 +316,41 @@ class MapDocument(BaseModel):
         return targets
 
 
+class MapChange(StrEnum):
+    """What replaced a map: each change keeps the map it replaced as a version."""
+
+    IMPORT = "import"  # PUT /environments/{id}/map
+    SURVEY = "survey"  # a survey job that succeeded
+    ALIGNMENT = "alignment"  # POST /environments/{id}/alignment
+    RESTORE = "restore"  # POST /environments/{id}/map/restore
+
+
+class MapVersionOut(BaseModel):
+    """An earlier map of an environment: what it was, and what replaced it when."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(
+        {"version": 3, "frame": "survey", "n_targets": 24, "survey_job_id": "5f0c2d9e8b7a4c1d9e2f3a4b5c6d7e8f",
+         "replaced_by": "alignment", "replaced_at": "2026-11-27T10:15:00Z"}))
+
+    version: int = Field(description="The version's number: give it to POST .../map/restore to restore it.")
+    frame: Literal["survey", "world"] = Field(description="The frame of that map: the survey's own, or aligned.")
+    n_targets: int = Field(description="Targets in that map.")
+    survey_job_id: str | None = Field(description="The survey job that made that map, or null.")
+    replaced_by: MapChange = Field(description="The change that replaced it.")
+    replaced_at: datetime = Field(description="When it was replaced.")
+
+    _tz = field_validator("replaced_at")(_aware)
+
+
+class MapRestoreRequest(BaseModel):
+    """Which earlier map to restore (`GET .../map/versions` lists them); by default the
+    one the last change replaced."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples({"version": 3}, {}))
+
+    version: int | None = Field(None, ge=1, description="The version to restore; null: the newest.")
+
+
 # --- markers ------------------------------------------------------------------------
 
 
@@ -833,7 +868,7 @@ class AlignmentRequest(BaseModel):
         {"points": [{"target_id": 7, "disc": 0, "world": [2.1, 0.0, 1.45]},
                     {"target_id": 7, "disc": 1, "world": [2.22, 0.0, 1.45]},
                     {"target_id": 12, "disc": 3, "world": [3.9, 0.35, 1.33]}],
-         "allow_scale": True},
+         "allow_scale": False},
         {"origin_target_id": 7}))
 
     points: list[AlignmentPoint] | None = Field(None, max_length=4 * MAX_MAP_TARGETS, description=(
@@ -841,7 +876,12 @@ class AlignmentRequest(BaseModel):
     origin_target_id: int | None = Field(
         None, ge=0, description="This target's centre becomes the origin, its plane z = 0, x along disc 0 -> 1."
     )
-    allow_scale: bool = Field(True, description="Fit the scale too (a similarity); false keeps the survey's scale.")
+    allow_scale: bool = Field(False, description=(
+        "Fit the scale too (a similarity). A surveyed map is metric already (its scale comes from the card size): "
+        "leave it false unless the map's scale is known to be wrong."))
+    force: bool = Field(False, description=(
+        "Store the fit even when it is refused: residuals beyond the tolerance, or a fitted scale far from 1. "
+        "The map it replaces can be restored (POST .../map/restore)."))
 
     @model_validator(mode="after")
     def _one_way(self) -> AlignmentRequest:

@@ -286,7 +286,8 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         page.select_option("#origin-card", str(state["ids"][0]))
         page.click("button:text-is('Set origin')")
         page.wait_for_function("window.fidotrack.map.frame === 'world'", timeout=10_000)
-        assert httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()["frame"] == "world"
+        origin_map = httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()
+        assert origin_map["frame"] == "world"
         assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
         # Or known points: four discs at their true places in the room; the residuals are shown.
         truth = {t.id: t.discs for t in survey_video.scene.targets}
@@ -301,6 +302,11 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         path = np.asarray(page.evaluate("window.fidotrack.map.cameraPath"))
         assert len(path) == state["trajectory"]
         assert np.all((path > -0.05) & (path < np.asarray(survey_video.room_size) + 0.05)), path
+        # Undo the fit: the origin alignment's map is back, drawn whole.
+        page.click("#restore-map")
+        page.wait_for_function("window.fidotrack.map.alignment === null")
+        assert httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json() == origin_map
+        assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
     assert errors == []
 
 

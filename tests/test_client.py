@@ -195,6 +195,15 @@ def test_survey_track_and_map_commands_on_a_running_service(server: Server, room
     assert main(["map", "get", str(tmp_path / "back.json"), "-e", str(truth), *service]) == 0
     assert len(json.loads((tmp_path / "back.json").read_text())["targets"]) == len(room.truth_map["targets"])
 
+    # Stored again: the first import is kept as a version, and can be restored.
+    assert main(["map", "put", str(tmp_path / "truth.json"), "-e", str(truth), *service]) == 0
+    assert main(["map", "versions", "-e", str(truth), *service]) == 0
+    listed = capsys.readouterr().out.strip().splitlines()
+    assert len(listed) == 1 and "replaced by import" in listed[0]
+    assert main(["map", "restore", "-e", str(truth), "--version", listed[0].split()[0], *service]) == 0
+    with Client(server.url) as client:
+        assert [v.replaced_by for v in client.map_versions(truth)] == ["restore", "import"]
+        assert len(client.restore_map(truth).targets) == len(room.truth_map["targets"])
     assert main(["track", str(room.frames_dir), "-e", str(truth), *service]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     assert [r["frame"] for r in rows] == sorted(p.name for p in room.frames_dir.iterdir())

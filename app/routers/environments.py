@@ -6,7 +6,8 @@ from fastapi import APIRouter, Response, status
 
 from app.deps import RowId, SessionDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, Problem, ValidationProblem
+from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, MapRestoreRequest,
+                         MapVersionOut, Problem, ValidationProblem)
 from app.services import environments
 
 router = APIRouter(prefix="/environments", tags=["environments"], route_class=JsonBodyRoute)
@@ -65,5 +66,23 @@ def get_map(environment_id: RowId, session: SessionDep) -> MapDocument:
             responses={**_404, **_422})
 def put_map(environment_id: RowId, document: MapDocument, session: SessionDep) -> MapDocument:
     """Replace the map whole (a map measured by hand, or an exported one). A document
-    with wrong shapes or non-finite numbers is refused whole and the stored map stays."""
+    with wrong shapes or non-finite numbers is refused whole and the stored map stays;
+    the map it replaces is kept as a version (`GET .../map/versions`)."""
     return environments.put_map(session, environment_id, document)
+
+
+@router.get("/{environment_id}/map/versions", response_model=list[MapVersionOut], summary="List earlier maps",
+            responses={**_404, **_422})
+def list_map_versions(environment_id: RowId, session: SessionDep) -> list[MapVersionOut]:
+    """The maps the environment had before each import, survey, alignment or restore
+    replaced them, the newest first (the last 20)."""
+    return environments.map_versions(session, environment_id)
+
+
+@router.post("/{environment_id}/map/restore", response_model=MapDocument, summary="Restore an earlier map",
+             responses={**_404, **_422, 409: {"model": Problem, "description": "No earlier map to restore"}})
+def restore_map(environment_id: RowId, session: SessionDep, spec: MapRestoreRequest | None = None) -> MapDocument:
+    """Make an earlier map the environment's map again: the one the last change replaced,
+    or the `version` given. The map it replaces is kept as a version in turn, so that a
+    restore can be undone too."""
+    return environments.restore_map(session, environment_id, spec.version if spec is not None else None)

@@ -7,10 +7,14 @@ from sqlalchemy.orm import Session
 
 from app.core.markers import get_family
 from app.db import utcnow
-from app.models import Environment, SurveyMap
-from app.schemas import EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument
+from app.models import Environment, MapVersion, SurveyMap
+from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapChange, MapDocument,
+                         MapVersionOut)
 from app.services import classifiers
-from app.services.errors import Invalid, NoMap, NotFound, get_or_404
+from app.services.errors import Conflict, Invalid, NoMap, NotFound, get_or_404
+
+#: Earlier maps kept per environment (`MapVersion`), the newest first.
+MAP_VERSIONS_KEPT = 20
 
 
 def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
@@ -96,17 +100,19 @@ def get_map(session: Session, environment_id: int) -> MapDocument:
     return MapDocument.model_validate(stored.document)
 
 
-def put_map(session: Session, environment_id: int, document: MapDocument) -> MapDocument:
+def put_map(session: Session, environment_id: int, document: MapDocument,
+            change: MapChange = MapChange.IMPORT) -> MapDocument:
     """Replace the environment's map whole, in one transaction; a refused document
-    leaves the stored map as it was."""
-    stage_map(session, environment_id, document)
+    leaves the stored map as it was, and the map it replaces is kept as a version."""
+    stage_map(session, environment_id, document, change)
     session.commit()
     return document
 
 
-def stage_map(session: Session, environment_id: int, document: MapDocument) -> None:
-    """Check `document` against the environment and stage it as the new map; the caller
-    commits (a survey job commits it together with its own success)."""
+def stage_map(session: Session, environment_id: int, document: MapDocument, change: MapChange) -> None:
+    """Check `document` against the environment and stage it as the new map, keeping the
+    map it replaces as a version (`change` says what replaced it); the caller commits (a
+    survey job commits it together with its own success)."""
     environment = get_row(session, environment_id)
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
@@ -118,6 +124,8 @@ def stage_map(session: Session, environment_id: int, document: MapDocument) -> N
     if stored is None:
         stored = SurveyMap(environment_id=environment_id)
         session.add(stored)
+    else:
+        _keep_version(session, stored, change)
     stored.frame = document.frame
     stored.n_targets = len(document.targets)
     stored.rms_px = document.rms_px
@@ -125,3 +133,41 @@ def stage_map(session: Session, environment_id: int, document: MapDocument) -> N
     stored.document = document.model_dump(mode="json")
     # The map is part of the environment: its row's own onupdate sees only its columns.
     environment.updated_at = utcnow()
+
+
+def _keep_version(session: Session, stored: SurveyMap, change: MapChange) -> None:
+    """Keep the map about to be replaced; drop the versions beyond `MAP_VERSIONS_KEPT`."""
+    session.add(MapVersion(environment_id=stored.environment_id, frame=stored.frame, n_targets=stored.n_targets,
+                           survey_job_id=stored.survey_job_id, document=stored.document, replaced_by=change.value,
+                           replaced_at=utcnow()))
+    session.flush()
+    old = session.scalars(select(MapVersion).where(MapVersion.environment_id == stored.environment_id)
+                          .order_by(MapVersion.id.desc()).offset(MAP_VERSIONS_KEPT)).all()
+    for version in old:
+        session.delete(version)
+
+
+def map_versions(session: Session, environment_id: int) -> list[MapVersionOut]:
+    """The environment's earlier maps, the newest first."""
+    get_row(session, environment_id)
+    rows = session.scalars(select(MapVersion).where(MapVersion.environment_id == environment_id)
+                           .order_by(MapVersion.id.desc())).all()
+    return [MapVersionOut(version=row.id, frame=row.frame, n_targets=row.n_targets,  # type: ignore[arg-type]
+                          survey_job_id=row.survey_job_id, replaced_by=MapChange(row.replaced_by),
+                          replaced_at=row.replaced_at) for row in rows]
+
+
+def restore_map(session: Session, environment_id: int, version: int | None) -> MapDocument:
+    """Make an earlier map (the newest if `version` is None) the environment's map again;
+    the map it replaces is kept as a version in turn, so a restore loses nothing either."""
+    get_row(session, environment_id)
+    query = select(MapVersion).where(MapVersion.environment_id == environment_id)
+    if version is None:
+        row = session.scalar(query.order_by(MapVersion.id.desc()).limit(1))
+        if row is None:
+            raise Conflict(f"environment {environment_id} has no earlier map to restore")
+    else:
+        row = session.scalar(query.where(MapVersion.id == version))
+        if row is None:
+            raise NotFound(f"environment {environment_id} has no map version {version}")
+    return put_map(session, environment_id, MapDocument.model_validate(row.document), MapChange.RESTORE)

@@ -28,7 +28,7 @@ from app.core.geometry import Camera
 from app.core.imagecodec import PNG_MAGIC, decode_gray
 from app.core.features import FeatureTracker, exclusion_mask
 from app.core.survey import FeatureObservations, SurveyError, survey
-from app.schemas import CameraModel, JobOut, MapDocument
+from app.schemas import CameraModel, JobOut, MapChange, MapDocument
 from app.services import classifiers, environments, images, jobs
 from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia
 from app.services.jobs import JobContext, JobKind, JobResult, JobRunner, job_handler
@@ -307,5 +307,5 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
                     "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
     assert context.environment_id is not None
     with context.finishing(summary) as session:
-        environments.stage_map(session, context.environment_id, document)
+        environments.stage_map(session, context.environment_id, document, MapChange.SURVEY)
     return summary

@@ -8,7 +8,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from app.schemas import MapDocument
+from app.schemas import MapChange, MapDocument
 from app.services import environments
 from app.services.jobs import JobContext, JobResult, job_handler
 
@@ -54,5 +54,6 @@ def store_map(params: StoreMapParams, context: JobContext) -> JobResult:
     """Store a map as a survey's last step does: staged in the transaction that marks the job succeeded."""
     assert context.environment_id is not None
     with context.finishing({"stored": True}) as session:
-        environments.stage_map(session, context.environment_id, MapDocument.model_validate(params.document))
+        environments.stage_map(session, context.environment_id, MapDocument.model_validate(params.document),
+                               MapChange.SURVEY)
     return {"stored": True}

@@ -70,6 +70,7 @@ export async function mapPage(view, environmentId, focusId) {
   const originSelect = h("select", { id: "origin-card" });
   const pointsText = h("textarea", { rows: 5, cols: 34, placeholder: "# target disc x y z (metres)\n3 0 0 0 0\n..." });
   const allowScale = h("input", { type: "checkbox" });
+  const force = h("input", { type: "checkbox", id: "force-fit" });
 
   async function align(spec) {
     try {
@@ -85,6 +86,17 @@ export async function mapPage(view, environmentId, focusId) {
         result.residuals.length ? h("table", {}, h("tr", {}, h("th", {}, "card"), h("th", {}, "disc"), h("th", {}, "residual (mm)")),
           result.residuals.map((r) => h("tr", {}, h("td", {}, String(r.target_id)), h("td", {}, String(r.disc)),
                                                 h("td", {}, fixed(r.residual_m * 1000, 2))))) : "");
+    } catch (error) { notify(error.message); }
+  }
+
+  async function restore() {
+    try {
+      map = await api("POST", `/environments/${environmentId}/map/restore`, {});
+      state.alignment = null;
+      residuals.replaceChildren(h("p", { class: "muted" }, "The previous map is back."));
+      // The camera path is known in the survey's frame only.
+      trajectory = map.frame === "survey" && map.survey_job_id === loaded.map.survey_job_id ? loaded.trajectory : [];
+      draw();
     } catch (error) { notify(error.message); }
   }
 
@@ -112,11 +124,15 @@ export async function mapPage(view, environmentId, focusId) {
         } }, h("label", {}, "Origin card (its plane becomes z = 0)", originSelect), h("button", {}, "Set origin")),
         h("form", { onsubmit: (event) => {
           event.preventDefault();
-          try { align({ points: parsePoints(pointsText.value), allow_scale: allowScale.checked }); }
+          try { align({ points: parsePoints(pointsText.value), allow_scale: allowScale.checked, force: force.checked }); }
           catch (error) { notify(error.message); }
         } }, h("label", {}, "Known disc positions", pointsText),
-          h("label", {}, h("span", {}, allowScale, " fit the scale too")), h("button", {}, "Fit")),
-        residuals));
+          h("label", {}, h("span", {}, allowScale, " fit the scale too")),
+          h("label", {}, h("span", {}, force, " store it even if refused (residuals over 2 cm, scale off)")),
+          h("button", {}, "Fit")),
+        residuals,
+        h("p", {}, h("button", { class: "secondary", id: "restore-map", onclick: restore }, "Restore the previous map"),
+          " ", h("span", { class: "muted" }, "undoes the last change (a survey, an import, an alignment)"))));
   }
 
   draw();
