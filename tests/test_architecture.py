@@ -198,3 +198,47 @@ def test_every_json_body_is_parsed_off_the_event_loop() -> None:
     routes = [r for r in flattened(create_app().routes) if isinstance(r, APIRoute) and r.body_field is not None]
     assert len(routes) >= 5
     assert [r.path for r in routes if not isinstance(r, JsonBodyRoute)] == []
+
+
+def _requirement_names(requirements: list[str]) -> set[str]:
+    import re
+
+    names = set()
+    for requirement in requirements:
+        if ";" in requirement and "extra ==" in requirement:
+            continue  # an optional extra of that package
+        names.add(re.split(r"[\s\[<>=!~;(]", requirement, maxsplit=1)[0].lower().replace("_", "-"))
+    return names
+
+
+def test_what_the_package_imports_is_installed_by_its_dependencies() -> None:
+    # `pip install .` (no extras) must give every outside module the package imports,
+    # except the simulator's (the `sim` extra): a dependency met only by the test extra
+    # works in the tests and fails for users.
+    import importlib.metadata as metadata
+    import tomllib
+
+    declared = _requirement_names(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"])
+    installed, todo = set(), list(declared)
+    while todo:  # the declared dependencies and what they require in turn
+        name = todo.pop()
+        if name in installed:
+            continue
+        installed.add(name)
+        try:
+            todo += sorted(_requirement_names(metadata.requires(name) or []))
+        except metadata.PackageNotFoundError:
+            pass
+    distributions = metadata.packages_distributions()
+    missing = {}
+    for name, path in _modules().items():
+        if name.startswith("app.sim"):
+            continue
+        for imported in _imports(name, path):
+            top = imported.split(".")[0]
+            if top == "app" or top in sys.stdlib_module_names or top == "__future__":
+                continue
+            providers = {d.lower().replace("_", "-") for d in distributions.get(top, [top])}
+            if not providers & installed:
+                missing.setdefault(top, []).append(name)
+    assert not missing, f"imported but not installed by `pip install .`: {missing}"
