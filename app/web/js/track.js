@@ -90,7 +90,7 @@ export async function trackPage(view, environmentId) {
     return [target, Math.round((hgt * target) / w)];
   }
 
-  /** Encode the video's current picture; resolves to [bytes, encode ms]. */
+  /** Encode the video's current picture; resolves to [bytes, draw + encode ms, when the draw began]. */
   async function capture() {
     const began = performance.now();
     const [w, hgt] = frameSize();
