@@ -11,13 +11,14 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
 from app.routers.json_bodies import JsonBodyRoute
+from app.routers.responses import JOB_QUEUE_FULL, UPLOAD_TOO_LARGE, invalid, not_found, problem
 from app.routers.uploads import read_upload
-from app.schemas import ClassifierOut, JobOut, Name, Problem, ValidationProblem
+from app.schemas import ClassifierOut, JobOut, Name
 from app.services import classifiers, training
 
 router = APIRouter(prefix="/classifiers", tags=["classifiers"], route_class=JsonBodyRoute)
-_404 = {404: {"model": Problem, "description": "No such classifier"}}
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
+_404 = not_found("classifier")
+_422 = invalid()
 
 
 @router.get("", response_model=list[ClassifierOut], summary="List the classifiers")
@@ -37,9 +38,9 @@ def get_classifier(classifier_id: RowId, session: SessionDep) -> ClassifierOut:
     "/{classifier_id}",
     status_code=status.HTTP_204_NO_CONTENT,
     summary="Delete a classifier",
-    responses={**_404, **_422, 409: {"model": Problem, "description": (
+    responses={**_404, **_422, **problem(409, (
         "The classifier is the default, an environment detects with it (the reply names them) or a queued or "
-        "running job will use it")}},
+        "running job will use it"))},
 )
 def delete_classifier(classifier_id: RowId, session: SessionDep) -> None:
     """Delete a classifier nothing uses. The default classifier stays, and so does one
@@ -50,9 +51,8 @@ def delete_classifier(classifier_id: RowId, session: SessionDep) -> None:
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
              summary="Train a classifier on a site's images",
-             responses={413: {"model": Problem, "description": "The upload is over a limit"},
-                        415: {"model": Problem, "description": "An image is not a JPEG or PNG"}, **_422, **_404,
-                        429: {"model": Problem, "description": "Too many jobs are queued or running"}})
+             responses={**UPLOAD_TOO_LARGE, **problem(415, "An image is not a JPEG or PNG"), **_422, **_404,
+                        **JOB_QUEUE_FULL})
 async def train_classifier(
     response: Response,
     session: SessionDep,

@@ -9,8 +9,9 @@ from fastapi import APIRouter, Query, Request, Response
 
 from app.deps import ImageWorkersDep, SettingsDep
 from app.routers.json_bodies import JsonBodyRoute
+from app.routers.responses import IMAGE_REFUSED, invalid, not_found
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
-from app.schemas import DetectResponse, Problem, ValidationProblem
+from app.schemas import DetectResponse
 
 router = APIRouter(tags=["detection"], route_class=JsonBodyRoute)
 
@@ -23,12 +24,10 @@ router = APIRouter(tags=["detection"], route_class=JsonBodyRoute)
     responses={
         200: {"description": "The targets as JSON; with ?draw=true the image as a PNG with the detections drawn.",
               "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
-        404: {"model": Problem, "description": "No such classifier"},
-        413: {"model": Problem, "description": "The image is over a limit"},
-        415: {"model": Problem, "description": "Not a JPEG or PNG"},
-        422: {"model": ValidationProblem, "description": "The request does not validate, or the image cannot be used "
-                                                       "(corrupt, too small) or the family is unknown"},
-        503: {"model": Problem, "description": "The server is busy with other images; retry"},
+        **not_found("classifier"),
+        **IMAGE_REFUSED,
+        **invalid("The request does not validate, or the image cannot be used (corrupt, too small) or the family "
+                  "is unknown"),
     },
 )
 async def detect(

@@ -6,13 +6,14 @@ from fastapi import APIRouter, Response, status
 
 from app.deps import RowId, SessionDep
 from app.routers.json_bodies import JsonBodyRoute
+from app.routers.responses import NO_MAP, invalid, not_found, problem
 from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, MapRestoreRequest,
-                         MapVersionOut, Problem, ValidationProblem)
+                         MapVersionOut)
 from app.services import environments
 
 router = APIRouter(prefix="/environments", tags=["environments"], route_class=JsonBodyRoute)
-_404 = {404: {"model": Problem, "description": "No such environment"}}
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
+_404 = not_found("environment")
+_422 = invalid()
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=EnvironmentOut, summary="Create an environment",
@@ -56,7 +57,7 @@ def delete_environment(environment_id: RowId, session: SessionDep) -> None:
 
 
 @router.get("/{environment_id}/map", response_model=MapDocument, summary="Export the map",
-            responses={**_404, **_422, 409: {"model": Problem, "description": "The environment has no map yet"}})
+            responses={**_404, **_422, **NO_MAP})
 def get_map(environment_id: RowId, session: SessionDep) -> MapDocument:
     """The environment's map: camera and 3D disc centres of every target."""
     return environments.get_map(session, environment_id)
@@ -80,7 +81,7 @@ def list_map_versions(environment_id: RowId, session: SessionDep) -> list[MapVer
 
 
 @router.post("/{environment_id}/map/restore", response_model=MapDocument, summary="Restore an earlier map",
-             responses={**_404, **_422, 409: {"model": Problem, "description": "No earlier map to restore"}})
+             responses={**_404, **_422, **problem(409, "No earlier map to restore")})
 def restore_map(environment_id: RowId, session: SessionDep, spec: MapRestoreRequest | None = None) -> MapDocument:
     """Make an earlier map the environment's map again: the one the last change replaced,
     or the `version` given. The map it replaces is kept as a version in turn, so that a

@@ -8,15 +8,16 @@ from fastapi import APIRouter, Query
 
 from app.deps import SessionDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import JobOut, JobStatus, Problem, ValidationProblem
+from app.routers.responses import invalid, not_found
+from app.schemas import JobOut, JobStatus
 from app.services import jobs
 from app.services.errors import MAX_ID
 from app.services.jobs import JobKind
 from app.services.jobs.store import DEFAULT_LISTED, MAX_LISTED, list_recent
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=JsonBodyRoute)
-_404 = {404: {"model": Problem, "description": "No such job"}}
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
+_404 = not_found("job")
+_422 = invalid()
 
 
 @router.get("", response_model=list[JobOut], summary="List jobs", responses=_422)

@@ -6,11 +6,12 @@ from fastapi import APIRouter, status
 
 from app.deps import RowId, SessionDep, VerifiedKeysDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut, Problem, ValidationProblem
+from app.routers.responses import invalid, not_found
+from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeyOut
 from app.services import keys
 
 router = APIRouter(prefix="/keys", tags=["keys"], route_class=JsonBodyRoute)
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
+_422 = invalid()
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ApiKeyCreated, summary="Create an API key",
@@ -29,7 +30,7 @@ def list_keys(session: SessionDep) -> list[ApiKeyOut]:
 
 
 @router.delete("/{key_id}", response_model=ApiKeyOut, summary="Revoke an API key",
-               responses={404: {"model": Problem, "description": "No such key"}, **_422})
+               responses={**not_found("key"), **_422})
 def revoke_key(key_id: RowId, session: SessionDep, verified: VerifiedKeysDep) -> ApiKeyOut:
     """Revoke a key: it is refused from the next request on. The row stays, to show
     when it was revoked."""

@@ -7,7 +7,8 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Query, Response
 
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import MarkerCatalogue, MarkerLayoutOut, Problem, ValidationProblem
+from app.routers.responses import invalid, not_found
+from app.schemas import MarkerCatalogue, MarkerLayoutOut
 from app.services import markers
 from app.services.marker_sheets import MAX_SIZE_MM, MIN_SIZE_MM
 
@@ -15,8 +16,8 @@ router = APIRouter(prefix="/markers", tags=["markers"], route_class=JsonBodyRout
 
 Family = Annotated[str, Query(description="Code family, e.g. fido3x3 (default) or fido4x4.")]
 MarkerId = Annotated[int, Path(description="Marker id within the family (404 outside it).")]
-_404 = {404: {"model": Problem, "description": "No such marker id or family"}}
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate"}}
+_404 = not_found("marker id or family")
+_422 = invalid()
 
 
 @router.get("", response_model=MarkerCatalogue, summary="List the marker families")

@@ -8,14 +8,14 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.schemas import AlignmentRequest, AlignmentResult, JobOut, Problem, ValidationProblem
+from app.routers.responses import JOB_QUEUE_FULL, NO_MAP, UPLOAD_TOO_LARGE, invalid, not_found, problem
+from app.schemas import AlignmentRequest, AlignmentResult, JobOut
 from app.services import alignments, surveys
 from app.settings import MAX_SURVEY_FILES
 
 router = APIRouter(prefix="/environments", tags=["surveys"], route_class=JsonBodyRoute)
-_404 = {404: {"model": Problem, "description": "No such environment"}}
-_422 = {422: {"model": ValidationProblem, "description": "The request does not validate, or does not fit the "
-                                                         "environment"}}
+_404 = not_found("environment")
+_422 = invalid("The request does not validate, or does not fit the environment")
 
 
 @router.post(
@@ -26,9 +26,8 @@ _422 = {422: {"model": ValidationProblem, "description": "The request does not v
     form_limits={"max_files": MAX_SURVEY_FILES + 1},
     response_model=JobOut,
     summary="Survey an environment from a video",
-    responses={**_404, 413: {"model": Problem, "description": "The upload is over a limit"},
-               415: {"model": Problem, "description": "Not a supported video or image"}, **_422,
-               429: {"model": Problem, "description": "Too many jobs are queued or running"}},
+    responses={**_404, **UPLOAD_TOO_LARGE, **problem(415, "Not a supported video or image"), **_422,
+               **JOB_QUEUE_FULL},
 )
 def start_survey(
     environment_id: RowId,
@@ -65,7 +64,7 @@ def start_survey(
     "/{environment_id}/alignment",
     response_model=AlignmentResult,
     summary="Align the map to the world",
-    responses={**_404, **_422, 409: {"model": Problem, "description": "The environment has no map yet"}},
+    responses={**_404, **_422, **NO_MAP},
 )
 def align_map(environment_id: RowId, spec: AlignmentRequest, session: SessionDep) -> AlignmentResult:
     """Move the map into world coordinates: a similarity transform (scale, rotation,

@@ -9,9 +9,9 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
 from app.deps import ImageWorkersDep, RowId, SettingsDep, TrackStreamsDep
 from app.routers.json_bodies import JsonBodyRoute
+from app.routers.responses import IMAGE_REFUSED, NO_MAP, invalid, not_found
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
-from app.schemas import (LocateResponse, Problem, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage,
-                         ValidationProblem)
+from app.schemas import LocateResponse, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
 from app.services.streaming import ClientGone, Refused
 
 router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
@@ -22,13 +22,8 @@ router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
     response_model=LocateResponse,
     summary="Locate the camera from one image",
     openapi_extra=IMAGE_BODY_DOC,
-    responses={404: {"model": Problem, "description": "No such environment"},
-               413: {"model": Problem, "description": "The image is over a limit"},
-               415: {"model": Problem, "description": "Not a JPEG or PNG"},
-               409: {"model": Problem, "description": "The environment has no map yet"},
-               422: {"model": ValidationProblem, "description": "The request does not validate, or the image cannot "
-                                                               "be used"},
-               503: {"model": Problem, "description": "The server is busy with other images; retry"}},
+    responses={**not_found("environment"), **IMAGE_REFUSED, **NO_MAP,
+               **invalid("The request does not validate, or the image cannot be used")},
 )
 async def locate(
     environment_id: RowId,
