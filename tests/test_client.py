@@ -132,6 +132,7 @@ def test_the_client_surveys_with_progress_and_tracks_in_lock_step(server: Server
 
 
 def test_the_client_sends_its_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
     import subprocess
     import sys
 
@@ -139,7 +140,7 @@ def test_the_client_sends_its_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     with running_server(tmp_path / "data", tmp_path / "server.log") as keyed:
         created = subprocess.run([str(Path(sys.executable).with_name("fidotrack")), "keys", "create", "--name", "script",
                                   "--scopes", "read,track,admin"], capture_output=True, text=True, check=True,
-                                 env={**__import__("os").environ, "FIDOTRACK_DATA_DIR": str(tmp_path / "data")})
+                                 env={**os.environ, "FIDOTRACK_DATA_DIR": str(tmp_path / "data")})
         key = created.stdout.split()[-1]
         with pytest.raises(ApiError) as refused, Client(keyed.url) as anonymous:
             anonymous.environments()

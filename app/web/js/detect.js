@@ -2,7 +2,7 @@
 // passed the classifier, and the identified targets with their ids.
 
 import { api, postImage } from "./api.js";
-import { fixed, h, notify } from "./dom.js";
+import { drawTarget, fixed, h, notify } from "./dom.js";
 
 function draw(canvas, image, result) {
   canvas.width = result.width;
@@ -16,16 +16,7 @@ function draw(canvas, image, result) {
     g.beginPath(); g.arc(u, v, Math.max(3 * unit, r || 0), 0, 2 * Math.PI); g.stroke();
   }
   g.lineWidth = 3 * unit;
-  g.font = `bold ${18 * unit}px sans-serif`;
-  for (const target of result.targets) {
-    g.strokeStyle = "#00e676";
-    g.beginPath();
-    target.discs.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
-    g.closePath(); g.stroke();
-    const [cu, cv] = target.discs.reduce(([a, b], [u, v]) => [a + u / 4, b + v / 4], [0, 0]);
-    g.fillStyle = "#000"; g.fillRect(cu - 16 * unit, cv - 12 * unit, 32 * unit, 24 * unit);
-    g.fillStyle = "#fff"; g.textAlign = "center"; g.textBaseline = "middle"; g.fillText(String(target.id), cu, cv);
-  }
+  for (const target of result.targets) drawTarget(g, target, "#00e676", 18 * unit);
 }
 
 export async function detectPage(view) {

@@ -31,3 +31,20 @@ export function notify(message) {
   notice.textContent = message || "";
   notice.hidden = !message;
 }
+
+/**
+ * One detected target on a 2D canvas: the quadrilateral of its discs in `colour`, and its
+ * id in white on a dark box at its centre, in `size`-pixel text.
+ */
+export function drawTarget(g, target, colour, size) {
+  g.strokeStyle = colour;
+  g.beginPath();
+  target.discs.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
+  g.closePath();
+  g.stroke();
+  const [cu, cv] = target.discs.reduce(([a, b], [u, v]) => [a + u / 4, b + v / 4], [0, 0]);
+  g.font = `bold ${size}px sans-serif`;
+  g.fillStyle = "#000";
+  g.fillRect(cu - 0.875 * size, cv - 0.6875 * size, 1.75 * size, 1.375 * size);
+  g.fillStyle = "#fff"; g.textAlign = "center"; g.textBaseline = "middle"; g.fillText(String(target.id), cu, cv);
+}

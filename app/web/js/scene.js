@@ -125,6 +125,8 @@ export class MapView {
     this.running = true;
     this.frameQueued = false;
     this.lastFrame = -Infinity;
+    this.livePose = null;  // the live camera's newest pose, and whether it is drawn yet
+    this.liveChanged = false;
     this.minFrameMs = 1000 / maxFps;
     this.frames = 0;  // frames drawn: the view draws only when something changed
     this.controls.addEventListener("change", () => this.requestRender());
@@ -145,6 +147,10 @@ export class MapView {
       this.frameQueued = false;
       if (!this.running) return;
       this.lastFrame = performance.now();
+      if (this.liveChanged) {
+        this.buildCamera(this.livePose);
+        this.liveChanged = false;
+      }
       const moving = this.controls.update();  // damping: the view glides on after a drag
       this.renderer.render(this.scene, this.camera);
       this.frames += 1;
@@ -209,11 +215,17 @@ export class MapView {
 
   /**
    * The live camera: a frustum at the pose (R, t map->camera, OpenCV axes) and its
-   * position's 3-sigma ellipsoid from the covariance (m^2). null hides it.
+   * position's 3-sigma ellipsoid from the covariance (m^2). null hides it. Built when the
+   * view is next drawn, so that poses arriving faster than it draws cost nothing.
    */
   setCamera(pose) {
-    clearGroup(this.liveGroup);
+    this.livePose = pose;
+    this.liveChanged = true;
     this.requestRender();
+  }
+
+  buildCamera(pose) {
+    clearGroup(this.liveGroup);
     if (!pose) return;
     const R = pose.R;
     const C = new THREE.Vector3(...pose.position);

@@ -4,7 +4,7 @@
 // in the 3D map with its uncertainty; fps, latency and dropped frames measured here.
 
 import { trackUrl } from "./api.js";
-import { fixed, h, notify, quantile } from "./dom.js";
+import { drawTarget, fixed, h, notify, quantile } from "./dom.js";
 import { loadMap } from "./map.js";
 import { MapView } from "./scene.js";
 
@@ -20,17 +20,10 @@ function drawTargets(overlay, reply) {
   g.clearRect(0, 0, overlay.width, overlay.height);
   const unit = Math.max(1, reply.width / 640);
   g.lineWidth = 2 * unit;
-  g.font = `bold ${16 * unit}px sans-serif`;
   for (const target of reply.targets) {
-    g.strokeStyle = reply.pose && !reply.pose.rejected_targets.includes(target.id) ? "#00e676" : "#ffb300";
-    g.beginPath();
-    target.discs.forEach(([u, v], i) => (i ? g.lineTo(u, v) : g.moveTo(u, v)));
-    g.closePath();
-    g.stroke();
+    const used = reply.pose && !reply.pose.rejected_targets.includes(target.id);
+    drawTarget(g, target, used ? "#00e676" : "#ffb300", 16 * unit);
     for (const [u, v] of target.discs) { g.beginPath(); g.arc(u, v, 5 * unit, 0, 2 * Math.PI); g.stroke(); }
-    const [cu, cv] = target.discs.reduce(([a, b], [u, v]) => [a + u / 4, b + v / 4], [0, 0]);
-    g.fillStyle = "#000"; g.fillRect(cu - 14 * unit, cv - 11 * unit, 28 * unit, 22 * unit);
-    g.fillStyle = "#fff"; g.textAlign = "center"; g.textBaseline = "middle"; g.fillText(String(target.id), cu, cv);
   }
 }
 
