@@ -156,7 +156,7 @@ def _track(args: argparse.Namespace) -> int:
     import json
 
     from app.client import ApiError, TrackRefused
-    from app.schemas import TrackConfig
+    from app.schemas import FreeDConnection, Smoothing, TrackConfig
 
     names: list[str] = []
 
@@ -166,7 +166,25 @@ def _track(args: argparse.Namespace) -> int:
             yield data
 
     out = sys.stdout if args.output is None else open(args.output, "w", newline="")
-    config = TrackConfig(method=args.method) if args.method else None
+    fields: dict[str, object] = {}
+    if args.method:
+        fields["method"] = args.method
+    if args.smooth:
+        fields["smoothing"] = Smoothing()
+    if args.predict_ms:
+        fields["predict_ms"] = args.predict_ms
+    if args.no_freed:
+        fields["freed"] = FreeDConnection(enabled=False)
+    elif args.freed or args.camera_id is not None:
+        host, _, port = (args.freed or "").rpartition(":")
+        if args.freed and not (host and port.isdigit()):
+            return _fail("track", ValueError(f"--freed wants HOST:PORT, got {args.freed!r}"))
+        fields["freed"] = FreeDConnection(host=host or None, port=int(port) if port else None,
+                                          camera_id=1 if args.camera_id is None else args.camera_id)
+    try:
+        config = TrackConfig(**fields) if fields else None  # type: ignore[arg-type]
+    except ValueError as error:
+        return _fail("track", error)
     try:
         with _client(args) as client:
             writer = csv.writer(out) if args.format == "csv" else None
@@ -176,7 +194,8 @@ def _track(args: argparse.Namespace) -> int:
                               file=sys.stderr):
                 name = names[reply.seq]
                 if writer is not None:
-                    position = reply.pose.position if reply.pose else ["", "", ""]
+                    used = reply.filtered or reply.pose  # smoothed or predicted when asked for
+                    position = used.position if used else ["", "", ""]
                     writer.writerow([name, reply.seq, *position, len(reply.targets),
                                      reply.pose.reprojection_rms_px if reply.pose else "", reply.pose_error or ""])
                 else:
@@ -415,6 +434,15 @@ def build_parser() -> argparse.ArgumentParser:
                        help="csv: frame, position, targets; jsonl: each whole reply (default: %(default)s)")
     track.add_argument("--method", choices=["nonlinear", "posit", "mean", "single"],
                        help="pose method (default: the service's, nonlinear)")
+    track.add_argument("--smooth", action="store_true",
+                       help="smooth the poses (One Euro filter); CSV positions are then the smoothed ones")
+    track.add_argument("--predict-ms", type=float, default=0.0,
+                       help="predict each pose this many ms ahead (0-500); CSV positions are then the predicted ones")
+    track.add_argument("--freed", metavar="HOST:PORT",
+                       help="send the poses as FreeD packets over UDP to this receiver (default: the environment's "
+                            "FreeD output, if it has one)")
+    track.add_argument("--camera-id", type=int, help="the FreeD camera id (0-255, default 1)")
+    track.add_argument("--no-freed", action="store_true", help="send no FreeD, even to the environment's output")
     track.add_argument("-o", "--output", type=Path, help="write the poses here (default: standard output)")
     on_service(track)
     track.set_defaults(run=_track)

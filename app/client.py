@@ -30,6 +30,7 @@ from app.schemas import (
     AlignmentResult,
     DetectResponse,
     EnvironmentOut,
+    FreeDOutput,
     JobOut,
     JobStatus,
     LocateResponse,
@@ -44,6 +45,8 @@ __all__ = ["ApiError", "Client", "JobFailed", "TrackRefused", "encode_frame"]
 
 #: Job states after which a job never changes.
 FINISHED = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELLED})
+#: /track errors that are notices about the stream: the frame's reply still follows.
+NOTICES = frozenset({"rate_limited", "freed"})
 
 
 class ApiError(Exception):
@@ -207,6 +210,25 @@ class Client:
         return AlignmentResult.model_validate(self._json("POST", f"/environments/{environment_id}/alignment",
                                                          json=body))
 
+    def freed_output(self, environment_id: int) -> FreeDOutput | None:
+        """The environment's FreeD output, or None without one."""
+        try:
+            return FreeDOutput.model_validate(self._json("GET", f"/environments/{environment_id}/freed"))
+        except ApiError as error:
+            if error.status == 404:
+                self.environment(environment_id)  # no such environment: its 404 instead
+                return None
+            raise
+
+    def set_freed_output(self, environment_id: int, output: FreeDOutput | dict[str, Any]) -> FreeDOutput:
+        """Send the environment's poses as FreeD packets to a receiver (docs/freed.md)."""
+        body = output.model_dump(mode="json") if isinstance(output, FreeDOutput) else output
+        return FreeDOutput.model_validate(self._json("PUT", f"/environments/{environment_id}/freed", json=body))
+
+    def remove_freed_output(self, environment_id: int) -> None:
+        """Stop sending the environment's poses as FreeD packets."""
+        self._request("DELETE", f"/environments/{environment_id}/freed")
+
     def sheet(self, ids: str, size_mm: float, family: str = "fido3x3") -> bytes:
         """An A4 PDF of the cards `ids` (e.g. ``"0-11"``) at `size_mm`."""
         return self._request("GET", "/markers/sheet.pdf",
@@ -299,7 +321,7 @@ class Client:
         reply is in, so nothing queues up) and yield the reply to each, in order.
 
         Frames the service refuses (``bad_frame``, ``frame_too_large``) are skipped with no
-        reply; a refused connection raises `TrackRefused`.
+        reply; a refused connection, or a refused `config`, raises `TrackRefused`.
         """
         from websockets.exceptions import ConnectionClosed
         from websockets.sync.client import connect
@@ -313,12 +335,14 @@ class Client:
             TrackHello.model_validate(hello)
             if config is not None:
                 ws.send(config.model_dump_json())
-                json.loads(ws.recv(timeout=30))  # the config echoed
+                echo = json.loads(ws.recv(timeout=30))  # the config echoed, or why it is refused
+                if echo.get("type") == "error":
+                    raise TrackRefused(echo.get("code", "error"), echo.get("message", ""))
             for frame in frames:
                 ws.send(encode_frame(frame, quality))
                 try:
                     message = json.loads(ws.recv(timeout=60))
-                    while message.get("type") == "error" and message.get("code") == "rate_limited":
+                    while message.get("type") == "error" and message.get("code") in NOTICES:
                         message = json.loads(ws.recv(timeout=60))  # the frame's reply is still to come
                 except ConnectionClosed as closed:
                     reason = closed.rcvd.reason if closed.rcvd is not None else "the connection closed"

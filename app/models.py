@@ -99,6 +99,20 @@ class MapVersion(Base):
     replaced_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
+class FreeDReceiver(Base):
+    """Where an environment's /track connections send their poses as FreeD packets."""
+
+    __tablename__ = "freed_receivers"
+
+    environment_id: Mapped[int] = mapped_column(ForeignKey("environments.id", ondelete="CASCADE"),
+                                                primary_key=True)
+    host: Mapped[str] = mapped_column(String(253))
+    port: Mapped[int] = mapped_column(Integer)
+    camera_id: Mapped[int] = mapped_column(Integer, default=1)
+    enabled: Mapped[bool] = mapped_column(Boolean, default=True)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+
 class Classifier(Base):
     """A trained disc detector (paper §4): stage-1 parameters and condensed prototypes."""
 

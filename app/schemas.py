@@ -111,6 +111,8 @@ _EXAMPLE_POSE: dict[str, Any] = {
     "focal_px": 823.4,
     "method": "nonlinear",
     "rejected_targets": [],
+    "ambiguous": False,
+    "tilt_from_track": False,
 }
 _EXAMPLE_DETECT_MS = {"candidates": 6.12, "targets": 3.27, "targets.group": 0.91, "targets.verify": 1.48,
                       "targets.refine": 0.52, "targets.identify": 0.21, "targets.complete": 0.15, "detect": 9.46}
@@ -627,6 +629,46 @@ class DetectResponse(BaseModel):
         "targets.identify, targets.complete), and detect, the whole."))
 
 
+#: Client conventions of a pose (docs/conventions.md): ``opencv`` (the map frame as it is,
+#: camera x right, y down, looking down +z), ``opengl`` (WebXR, ARKit, three.js: y up,
+#: camera looking down -z), ``unity`` (left-handed, y up), ``unreal`` (left-handed, z up,
+#: centimetres). The y-up and z-up frames take the map's z as up.
+PoseFrame = Literal["opencv", "opengl", "unity", "unreal"]
+_EXAMPLE_FRAME_POSE: dict[str, Any] = {
+    "frame": "unreal", "unit": "cm",
+    "matrix": [[1.0, 0.0, 0.0, 100.0], [0.0, 1.0, 0.0, -200.0], [0.0, 0.0, 1.0, 150.0], [0.0, 0.0, 0.0, 1.0]],
+    "quaternion_xyzw": [0.0, 0.0, 0.0, 1.0], "position": [100.0, -200.0, 150.0]}
+
+
+class ClientPose(BaseModel):
+    """A camera pose as a client engine takes it: the camera's transform in that engine's world."""
+
+    model_config = ConfigDict(json_schema_extra=_examples(_EXAMPLE_FRAME_POSE))
+
+    frame: PoseFrame = Field(description="The convention: opencv, opengl, unity or unreal.")
+    matrix: list[list[float]] = Field(description=(
+        "Camera to world, 4x4, row-major (rows of the matrix): its columns are the camera's axes in that "
+        "convention and its position, in the convention's world and unit."))
+    quaternion_xyzw: list[float] = Field(description="The matrix's rotation as a unit quaternion [x, y, z, w], w >= 0.")
+    position: list[float] = Field(description="The camera's position in the convention's world, in `unit`.")
+    unit: Literal["m", "cm"] = Field(description="The unit of `position` and of the matrix's last column.")
+
+
+class FilteredPoseOut(BaseModel):
+    """/track: the pose smoothed and/or predicted ahead, per the connection's config."""
+
+    model_config = ConfigDict(json_schema_extra=_examples({
+        "R": _EXAMPLE_R, "t": [-0.5918, -0.311, -1.742], "position": [0.95, 0.42, 1.55], "smoothed": True,
+        "predict_ms": 40.0, "frame_pose": _EXAMPLE_FRAME_POSE}))
+
+    R: list[list[float]] = Field(description="Rotation, map to camera (3x3), as in `pose`.")
+    t: list[float] = Field(description="Translation, map to camera (m).")
+    position: list[float] = Field(description="Camera centre in map coordinates (m).")
+    smoothed: bool = Field(description="Whether the One Euro filter smoothed it (config `smoothing`).")
+    predict_ms: float = Field(description="How far ahead of the frame's arrival it was predicted, ms (0: not).")
+    frame_pose: ClientPose = Field(description="The same pose in the convention of config `frame`.")
+
+
 class PoseOut(BaseModel):
     """A camera pose in a map, and how well the targets determine it."""
 
@@ -644,6 +686,15 @@ class PoseOut(BaseModel):
     focal_px: float = Field(description="Focal length used: the camera's, or estimated when focal estimation is on (px).")
     method: str = Field(description="Pose method: nonlinear, posit, mean or single.")
     rejected_targets: list[int] = Field(description="Ids of targets refused as outliers.")
+    ambiguous: bool = Field(False, description=(
+        "The pose rests on one card whose two tilts both fit its discs (seen small or from afar): the other "
+        "tilt, a pose far off, fitted almost as well."))
+    tilt_from_track: bool = Field(False, description=(
+        "/track only: of a lone card's two tilts, the one consistent with the connection's previous poses was "
+        "taken over the one with the lower reprojection error (a flip avoided; config `tilt`)."))
+    frame_pose: ClientPose | None = Field(None, description=(
+        "/track only: the same pose in the client convention of the connection's config `frame` "
+        "(docs/conventions.md)."))
 
 
 class LocateResponse(BaseModel):
@@ -683,7 +734,7 @@ ScanReason = Literal["first", "regions", "periodic", "lost", "fallback", "wide",
 
 #: Codes of `TrackError` (the connection stays open).
 TrackErrorCode = Literal["bad_message", "bad_config", "bad_frame", "frame_too_large", "rate_limited",
-                         "internal_error"]
+                         "freed", "internal_error"]
 #: Codes of `TrackRefusal` (the connection is closed).
 TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections", "idle"]
 
@@ -695,6 +746,56 @@ class TrackCloseCode(IntEnum):
     POLICY_VIOLATION = 1008  # a refused request: bad query, unknown environment, no map, missing API key
     SERVER_ERROR = 1011  # the connection failed on the server's side
     TRY_AGAIN_LATER = 1013  # the server already tracks ``max_track_connections`` connections
+
+
+#: Longest prediction a /track client may ask for, ms: beyond a few frames a constant
+#: velocity guess is worse than the last pose.
+MAX_PREDICT_MS = 500.0
+
+
+class Smoothing(BaseModel):
+    """The One Euro filter of a /track connection (Casiez et al. 2012): a low-pass whose
+    cut-off rises with the speed, so a still camera is smoothed hard and a moving one
+    lags little."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples(
+        {"min_cutoff_hz": 1.0, "beta": 20.0, "beta_rotation": 5.0}))
+
+    min_cutoff_hz: float = Field(1.0, gt=0, le=1000, description="Cut-off of a still camera, Hz (lower: smoother).")
+    beta: float = Field(20.0, ge=0, le=1e6, description="Rise of the cut-off with speed, Hz per m/s (higher: "
+                                                         "less lag in motion).")
+    beta_rotation: float = Field(5.0, ge=0, le=1e6, description="Rise of the orientation's cut-off with angular "
+                                                                 "speed, Hz per rad/s.")
+
+
+class FreeDOutput(BaseModel):
+    """An environment's FreeD output: every /track connection of the environment sends its
+    poses as FreeD D1 packets to this receiver (docs/freed.md)."""
+
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
+        {"host": "192.168.1.40", "port": 40000, "camera_id": 1, "enabled": True}))
+
+    host: str = Field(min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$", description=(
+        "Receiver's host name or IP address (the machine running Unreal Engine, Aximmetry, ...)."))
+    port: int = Field(ge=1, le=65535, description="Receiver's UDP port.")
+    camera_id: int = Field(1, ge=0, le=255, description="The camera id byte of the packets, unless a connection "
+                                                        "sets its own.")
+    enabled: bool = Field(True, description="Whether connections send (false keeps the settings, sends nothing).")
+
+
+class FreeDConnection(BaseModel):
+    """Where one /track connection sends its FreeD packets. Host and port left out are the
+    environment's FreeD output's."""
+
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
+        {"camera_id": 2}, {"host": "192.168.1.40", "port": 40000, "camera_id": 1}, {"enabled": False}))
+
+    host: str | None = Field(None, min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$", description=(
+        "Receiver's host name or IP address."))
+    port: int | None = Field(None, ge=1, le=65535, description="Receiver's UDP port.")
+    camera_id: int = Field(1, ge=0, le=255, description="The camera id byte of the packets.")
+    enabled: bool = Field(True, description="false: this connection sends no FreeD, even where the environment "
+                                            "has an output (a preview client beside the studio camera).")
 
 
 class TrackConfig(BaseModel):
@@ -718,19 +819,37 @@ class TrackConfig(BaseModel):
     full_scan_every: int = Field(30, ge=1, le=1_000_000,
                                  description="With regions, scan the whole frame at least every this many "
                                              "frames (finds targets the prediction misses).")
+    frame: PoseFrame = Field("opencv", description=(
+        "The client convention of `pose.frame_pose` and `filtered.frame_pose`: opencv, opengl (WebXR, ARKit), "
+        "unity or unreal (docs/conventions.md)."))
+    tilt: Literal["track", "residual"] = Field("track", description=(
+        "How a lone card's two tilts are told apart when both fit: track (the one consistent with this "
+        "connection's previous poses) or residual (the lower reprojection error alone)."))
+    smoothing: Smoothing | None = Field(None, description=(
+        "Smooth the poses with a One Euro filter (null: off); the result is the reply's `filtered`."))
+    predict_ms: float = Field(0.0, ge=0, le=MAX_PREDICT_MS, description=(
+        "Predict the pose this many ms after the frame's arrival at the server (constant velocity), to hide "
+        "the latency between a frame and its use; the result is the reply's `filtered`."))
+    freed: FreeDConnection | None = Field(None, description=(
+        "Send each pose as a FreeD D1 packet over UDP (docs/freed.md): to this connection's own receiver, or "
+        "with the environment's FreeD output's host and port and this camera id. Null: the environment's "
+        "FreeD output, if it has one."))
 
 
 class TrackHello(BaseModel):
     """Server -> client, first: the connection is accepted and tracks against this map."""
 
     model_config = ConfigDict(json_schema_extra=_examples(
-        {"type": "hello", "environment_id": 1, "camera": _EXAMPLE_CAMERA, "targets": 24}))
+        {"type": "hello", "environment_id": 1, "camera": _EXAMPLE_CAMERA, "targets": 24, "map_frame": "world"}))
 
     type: Literal["hello"] = Field("hello", description='Always "hello".')
     environment_id: int = Field(description="The environment whose map the poses refer to.")
     camera: CameraModel = Field(description="The map's camera; frames of another size are tracked with it "
                                             "scaled to their size.")
     targets: int = Field(description="Number of targets in the map.")
+    map_frame: Literal["survey", "world"] = Field("world", description=(
+        "The map's frame. In a survey's own frame nothing is up: align the map (docs/map-format.md) before "
+        "using poses in the y-up or z-up client conventions or FreeD's pan and tilt."))
 
 
 class TrackFrame(BaseModel):
@@ -754,12 +873,17 @@ class TrackFrame(BaseModel):
     pose_error: str | None = Field(description="Why there is no pose, when there is none.")
     timing_ms: dict[str, float] = Field(description=(
         "Server time per stage in milliseconds (decode, plan, candidates, targets, detect, pose, total); "
-        "``regions`` counts the regions searched when the frame was scanned by regions."))
+        "``regions`` counts the regions searched when the frame was scanned by regions; ``reduction`` (2 or 4) "
+        "says the JPEG was decoded at 1/2 or 1/4 of its size (HD frames whose discs the track predicts "
+        "large enough); ``freed`` is the time from the frame's arrival to its FreeD packet."))
     dropped: int = Field(description="Frames received since the previous reply that newer frames replaced "
                                      "before they were processed (the newest frame is never dropped).")
     scan: Literal["full", "regions"] = Field(description="Whether the whole frame or only the predicted "
                                                          "regions were searched.")
     scan_reason: ScanReason = Field(description="Why the frame was scanned so (see `ScanReason`).")
+    filtered: FilteredPoseOut | None = Field(None, description=(
+        "The pose smoothed and/or predicted, when config `smoothing` or `predict_ms` asks for it and the frame "
+        "has a pose; this is the pose FreeD sends then."))
 
 
 class TrackError(BaseModel):
@@ -774,7 +898,8 @@ class TrackError(BaseModel):
         "bad_message: a text message that is not a config; bad_config: a config that does not validate; "
         "bad_frame: a frame that cannot be decoded or is too small; frame_too_large: a frame over "
         "max_frame_bytes; rate_limited: frames over max_track_fps are being dropped (at most one such "
-        "message a second); internal_error: the server failed on this frame."))
+        "message a second); freed: a FreeD packet could not be sent, or the FreeD config cannot be used (at "
+        "most one such message a second); internal_error: the server failed on this frame."))
     message: str = Field(description="What was wrong, for a person.")
     seq: int | None = Field(description="The frame concerned (its index among the binary messages); null "
                                         "for text messages.")

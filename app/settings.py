@@ -53,6 +53,9 @@ class Settings(BaseSettings):
         "with)."))
     survey_frames: int = Field(1000, ge=2, le=20_000, description="Frames a survey uses by default (evenly spaced).")
     max_track_fps: float = Field(120.0, gt=0, description="Frames per second one /track client may send.")
+    freed_connection_receivers: bool = Field(True, description=(
+        "Whether a /track connection may send FreeD packets to a host and port of its own choosing (config "
+        "`freed`); false: only to its environment's FreeD output."))
     max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
     track_idle_timeout_s: float = Field(30.0, gt=0, le=86400, description=(
         "A /track connection that sends no message for this long is closed (error `idle`, close code 1001), "

@@ -18,7 +18,7 @@ import pytest
 from app.cli import build_parser, main
 from app.client import ApiError, Client, JobFailed, TrackRefused
 from app.core.geometry import Pose
-from app.schemas import JobOut, JobStatus, TrackConfig
+from app.schemas import FreeDOutput, JobOut, JobStatus, TrackConfig
 from tests.conftest import Server, example_map, running_server
 
 
@@ -232,3 +232,49 @@ def test_the_demo_surveys_and_tracks_a_room_and_prints_its_accuracy(capsys: pyte
     median_mm = float(tracked.split("median ")[1].split(" mm")[0])
     assert map_rms_mm < 2.0 and median_mm < 5.0, out
     assert "first pose" in out
+
+
+def test_track_command_sends_freed_and_smooths(server: Server, room: Room, capsys: pytest.CaptureFixture[str],
+                                               tmp_path: Path) -> None:
+    """``fidotrack track --freed HOST:PORT`` feeds a studio's receiver (here a UDP socket)
+    one packet per posed frame; ``--smooth`` and ``--predict-ms`` give the filtered poses;
+    a FreeD config the service cannot use stops the command with its message."""
+    import socket
+
+    from app.core.freed import decode
+
+    with Client(server.url) as client:
+        environment = client.create_environment("freed room", room.marker_size_m).id
+        client.put_map(environment, room.truth_map)
+    service = ["--url", server.url, "-q"]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as receiver:
+        receiver.bind(("127.0.0.1", 0))
+        receiver.settimeout(5.0)
+        port = receiver.getsockname()[1]
+        assert main(["track", str(room.frames_dir), "-e", str(environment), "--format", "jsonl", "--smooth",
+                     "--predict-ms", "30", "--freed", f"127.0.0.1:{port}", "--camera-id", "5",
+                     "-o", str(tmp_path / "p.jsonl"), *service]) == 0
+        lines = [json.loads(line) for line in (tmp_path / "p.jsonl").read_text().splitlines()]
+        posed = [line for line in lines if line["pose"] is not None]
+        assert len(posed) >= 0.8 * len(lines)
+        for line in posed:
+            packet = decode(receiver.recv(64))
+            assert packet.camera_id == 5
+            filtered = line["filtered"]
+            assert filtered["smoothed"] and filtered["predict_ms"] == 30
+            np.testing.assert_allclose([packet.x_mm, packet.y_mm, packet.z_mm], np.array(filtered["position"]) * 1e3,
+                                       atol=0.02)
+    capsys.readouterr()
+    assert main(["track", str(room.frames_dir), "-e", str(environment), "--camera-id", "2", *service]) == 1
+    assert "host and port" in capsys.readouterr().err  # no FreeD output in the environment to send to
+    assert main(["track", str(room.frames_dir), "-e", str(environment), "--freed", "nowhere", *service]) == 1
+    assert "HOST:PORT" in capsys.readouterr().err
+    with Client(server.url) as client:
+        assert client.freed_output(environment) is None
+        client.set_freed_output(environment, {"host": "127.0.0.1", "port": 9, "camera_id": 2})
+        assert client.freed_output(environment) == FreeDOutput(host="127.0.0.1", port=9, camera_id=2, enabled=True)
+        client.remove_freed_output(environment)
+        assert client.freed_output(environment) is None
+        with pytest.raises(ApiError) as missing:
+            client.freed_output(99999)
+        assert missing.value.status == 404

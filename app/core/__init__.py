@@ -11,9 +11,11 @@ Core modules:
 
 * `app.core.markers`: the target cards: layout, code families, raster and SVG output.
 * `app.core.imagecodec`: safe decoding of client JPEG and PNG images to greyscale.
+* `app.core.freed`: FreeD D1 camera-tracking packets: a pose as pan, tilt, roll and
+  position, and their bytes.
 
 Conventions (disc order, frames, units) are in docs/map-format.md. The sub-packages are
 not imported here: import the one you need (``from app.core.geometry import Camera``).
 """
 
-__all__ = ["detection", "geometry", "imagecodec", "markers", "survey"]
+__all__ = ["detection", "freed", "geometry", "imagecodec", "markers", "survey"]

@@ -1,4 +1,4 @@
-"""Environments CRUD and import/export of their maps."""
+"""Environments CRUD, import/export of their maps, and their FreeD output."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from fastapi import APIRouter, Response, status
 from app.deps import RowId, SessionDep
 from app.routers.json_bodies import JsonBodyRoute
 from app.routers.responses import NO_MAP, invalid, not_found, problem
-from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapDocument, MapRestoreRequest,
-                         MapVersionOut)
-from app.services import environments
+from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, FreeDOutput, MapDocument,
+                         MapRestoreRequest, MapVersionOut)
+from app.services import environments, freed
 
 router = APIRouter(prefix="/environments", tags=["environments"], route_class=JsonBodyRoute)
 _404 = not_found("environment")
@@ -87,3 +87,31 @@ def restore_map(environment_id: RowId, session: SessionDep, spec: MapRestoreRequ
     or the `version` given. The map it replaces is kept as a version in turn, so that a
     restore can be undone too."""
     return environments.restore_map(session, environment_id, spec.version if spec is not None else None)
+
+
+_404_FREED = problem(404, "No such environment, or it has no FreeD output")
+
+
+@router.get("/{environment_id}/freed", response_model=FreeDOutput, summary="Get the FreeD output",
+            responses={**_404_FREED, **_422})
+def get_freed(environment_id: RowId, session: SessionDep) -> FreeDOutput:
+    """Where the environment's /track connections send their poses as FreeD packets (404
+    when it has no FreeD output)."""
+    return freed.get(session, environment_id)
+
+
+@router.put("/{environment_id}/freed", response_model=FreeDOutput, summary="Set the FreeD output",
+            responses={**_404, **_422})
+def put_freed(environment_id: RowId, output: FreeDOutput, session: SessionDep) -> FreeDOutput:
+    """Send every pose tracked in this environment as a FreeD D1 packet over UDP to a
+    receiver (Unreal Engine's LiveLink FreeD source, Aximmetry, Disguise): docs/freed.md.
+    Connections opened afterwards use it; a connection can choose its own camera id or
+    opt out in its config (`freed`)."""
+    return freed.put(session, environment_id, output)
+
+
+@router.delete("/{environment_id}/freed", status_code=status.HTTP_204_NO_CONTENT, summary="Remove the FreeD output",
+               responses={**_404_FREED, **_422})
+def delete_freed(environment_id: RowId, session: SessionDep) -> None:
+    """Stop sending FreeD packets for the connections opened afterwards."""
+    freed.delete(session, environment_id)

@@ -4,15 +4,16 @@ that takes images decodes them here), within a memory budget shared by every rou
 from __future__ import annotations
 
 import multiprocessing
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from app.core.detection import MIN_SIDE
-from app.core.imagecodec import ImageError, ImageHeader, check_size, decode_gray, read_header
+from app.core.imagecodec import JPEG_REDUCTIONS, ImageError, ImageHeader, check_size, decode_gray, read_header
 from app.services.errors import Busy, Invalid, TooLarge, UnsupportedMedia
 from app.settings import Settings
 
@@ -90,9 +91,32 @@ def limit_compute_threads(threads: int) -> None:
     threadpool_limits(limits=threads)
 
 
-def cost_bytes(header: ImageHeader, detect: bool) -> int:
-    """Memory that decoding the image (and detecting in it, `detect`) holds at its peak."""
-    return header.decode_bytes + (DETECT_BYTES_PER_PIXEL * header.width * header.height if detect else 0)
+def cost_bytes(header: ImageHeader, detect: bool, reduction: int = 1) -> int:
+    """Memory that decoding the image (and detecting in it, `detect`) holds at its peak,
+    decoded at 1 / `reduction` of its size."""
+    pixels = -(-header.width // reduction) * -(-header.height // reduction)
+    return header.reduced_decode_bytes(reduction) + (DETECT_BYTES_PER_PIXEL * pixels if detect else 0)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A decoded client image.
+
+    Attributes
+    ----------
+    gray : (rows, columns) ndarray of uint8
+        The image, or the image decoded smaller (`reduction`).
+    width, height : int
+        The image's own size, pixels.
+    reduction : int
+        `gray` is the image at 1 / `reduction`: its pixel ``i`` is centred on the image's
+        pixel ``(i + 0.5) * reduction - 0.5``; 1 for an image decoded whole.
+    """
+
+    gray: np.ndarray
+    width: int
+    height: int
+    reduction: int = 1
 
 
 @contextmanager
@@ -102,6 +126,22 @@ def decoded(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bo
     (`detect`: the block detects targets in it, which costs more than decoding).
 
     Raises TooLarge (413), UnsupportedMedia (415), Invalid (422) or Busy (503)."""
+    with decoded_frame(data, settings, memory, detect=detect) as frame:
+        yield frame.gray
+
+
+@contextmanager
+def decoded_frame(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bool = True,
+                  reduction: Callable[[int, int], int] | None = None) -> Iterator[Frame]:
+    """`decoded`, with the image's size, and a JPEG decoded smaller when the caller says so.
+
+    `reduction` is called with the image's width and height from its header, before any
+    pixel is decoded, and returns the factor to decode a JPEG smaller by (1, 2, 4 or 8,
+    the decoder's DCT scaling: less time and memory than decoding the whole and
+    resampling); a PNG is decoded whole whatever it returns, and so is a JPEG that the
+    factor would make smaller than the detector's window.
+
+    Raises TooLarge (413), UnsupportedMedia (415), Invalid (422) or Busy (503)."""
     if len(data) > settings.max_image_bytes:
         raise TooLarge(f"image of {len(data)} bytes exceeds the limit of {settings.max_image_bytes} bytes")
     try:
@@ -109,9 +149,16 @@ def decoded(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bo
         check_size(header, settings.max_image_pixels)
     except ImageError as exc:
         raise _refusal(exc) from None
-    with memory.hold(cost_bytes(header, detect), f"a {header.width}x{header.height} {header.format.upper()}"):
+    factor = 1
+    if reduction is not None and header.format == "jpeg":
+        factor = int(reduction(header.width, header.height))
+        if factor not in JPEG_REDUCTIONS:
+            raise ValueError(f"a JPEG is decoded at 1/{JPEG_REDUCTIONS} of its size, not 1/{factor}")
+        if min(-(-header.width // factor), -(-header.height // factor)) < MIN_SIDE:
+            factor = 1  # too small for the detector reduced: whole (or refused below, as ever)
+    with memory.hold(cost_bytes(header, detect, factor), f"a {header.width}x{header.height} {header.format.upper()}"):
         try:
-            gray = decode_gray(data, settings.max_image_pixels, header=header)
+            gray = decode_gray(data, settings.max_image_pixels, header=header, reduction=factor)
         except ImageError as exc:
             raise _refusal(exc) from None
         if min(gray.shape) < MIN_SIDE:
@@ -120,7 +167,7 @@ def decoded(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bo
             raise Invalid(
                 f"the image is {gray.shape[1]}x{gray.shape[0]} pixels; both sides must be at least {MIN_SIDE}"
             )
-        yield gray
+        yield Frame(gray, header.width, header.height, factor)
 
 
 def _refusal(exc: ImageError) -> TooLarge | UnsupportedMedia | Invalid:

@@ -42,13 +42,17 @@ from app.schemas import (
     error_summary,
     load_json,
 )
+from app.schemas import FreeDOutput
+from app.services import freed
 from app.services.errors import ServiceError
+from app.services.freed import FreeDSender, FreeDUnusable
+from app.services.pose_output import PoseOutput
 from app.services.tracking import StreamFrame, TrackingContext, TrackingService, TrackState
 from app.settings import Settings
 
 log = logging.getLogger(__name__)
 
-#: At most one rate_limited error message per this many seconds.
+#: At most one rate_limited (and one freed) error message per this many seconds.
 RATE_LIMIT_NOTICE_S = 1.0
 #: Longest config message, characters (a config with intrinsics has a few hundred): a
 #: longer one is refused before it is parsed.
@@ -129,13 +133,17 @@ class _Stream:
     """One connection's state: the newest unprocessed frame, counters, config and the
     tracking state (frames of one connection are processed one at a time, in order)."""
 
-    def __init__(self, context: TrackingContext, bucket: TokenBucket) -> None:
+    def __init__(self, context: TrackingContext, bucket: TokenBucket, freed_output: FreeDOutput | None) -> None:
         self.context = context
         self.bucket = bucket
         self.rate_notice_at = -1e9  # monotonic time of the last rate_limited message
+        self.freed_notice_at = -1e9  # ... and of the last freed message
         self.config = TrackConfig()
         self.tracker = TrackState()  # poses of this connection, to predict regions
-        self.pending: tuple[int, bytes] | None = None
+        self.output = PoseOutput()  # client convention, smoothing, prediction
+        self.freed_output = freed_output  # the environment's, read when the connection opened
+        self.sender: FreeDSender | None = None
+        self.pending: tuple[int, bytes, float] | None = None  # seq, data, monotonic time it arrived
         self.received = 0  # binary messages so far; the next one's seq
         self.dropped = 0  # replaced before processing, since the last reply
         self.wake = asyncio.Event()
@@ -174,10 +182,15 @@ class TrackStreams:
             context = await anyio.to_thread.run_sync(self.tracking.context, environment_id)
         except ServiceError as exc:
             raise Refused("unknown_environment" if exc.status_code == 404 else "no_map", exc.detail) from None
+        freed_output = await anyio.to_thread.run_sync(self._freed_output, environment_id)
         await channel.send(TrackHello(environment_id=environment_id, camera=context.camera_model,
-                                      targets=len(context.discs)))
+                                      targets=len(context.discs), map_frame=context.map_frame))
         fps = self.settings.max_track_fps
-        stream = _Stream(context, TokenBucket(rate=fps, burst=max(1.0, fps)))
+        stream = _Stream(context, TokenBucket(rate=fps, burst=max(1.0, fps)), freed_output)
+        try:
+            await self._use_freed(channel, stream, stream.config)
+        except FreeDUnusable as exc:
+            await _error(channel, "freed", str(exc))
         receiver = asyncio.create_task(self._receive(channel, stream))
         processor = asyncio.create_task(self._process(channel, stream))
         try:
@@ -185,6 +198,8 @@ class TrackStreams:
         finally:  # also when this handler is cancelled (server shutdown)
             for task in (receiver, processor):
                 task.cancel()
+            if stream.sender is not None:
+                stream.sender.close()
         failed = False
         for task in done:
             if task.cancelled():
@@ -197,6 +212,21 @@ class TrackStreams:
         if failed:
             with contextlib.suppress(Exception):
                 await channel.close(TrackCloseCode.SERVER_ERROR)
+
+    def _freed_output(self, environment_id: int) -> FreeDOutput | None:
+        with self.tracking.sessions() as session:
+            return freed.find(session, environment_id)
+
+    async def _use_freed(self, channel: TrackChannel, stream: _Stream, config: TrackConfig) -> None:
+        """Point the connection's FreeD sender where `config` says (FreeDUnusable: it
+        cannot, and the sender is left as it was)."""
+        to = freed.destination(config.freed, stream.freed_output, self.settings.freed_connection_receivers)
+        if stream.sender is not None and stream.sender.to == to:
+            return
+        sender = None if to is None else await anyio.to_thread.run_sync(FreeDSender.open, to)
+        if stream.sender is not None:
+            stream.sender.close()
+        stream.sender = sender
 
     async def _receive(self, channel: TrackChannel, stream: _Stream) -> None:
         max_frame_bytes = self.settings.max_frame_bytes
@@ -220,10 +250,10 @@ class TrackStreams:
                         continue
                     if stream.pending is not None:
                         stream.dropped += 1
-                    stream.pending = (seq, message)
+                    stream.pending = (seq, message, time.monotonic())
                     stream.wake.set()
                 else:
-                    await _configure(channel, stream, message)
+                    await self._configure(channel, stream, message)
         finally:
             stream.closed = True
             stream.wake.set()
@@ -248,7 +278,7 @@ class TrackStreams:
                 if stream.pending is None:  # cannot happen (only this task takes it), but be safe
                     continue
             stream.bucket.take()
-            (seq, data), stream.pending = stream.pending, None
+            (seq, data, arrived), stream.pending = stream.pending, None
             dropped, stream.dropped = stream.dropped, 0
             frame = StreamFrame(config=stream.config, seq=seq, state=stream.tracker)
             try:
@@ -263,33 +293,60 @@ class TrackStreams:
                 stream.dropped += dropped
                 await _error(channel, "internal_error", f"frame {seq} could not be processed (server error)", seq)
                 continue
+            shaped = stream.output.shape(result.pose, arrived, stream.config)
+            timing_ms = result.timing_ms
+            if stream.sender is not None and shaped.R is not None:
+                # FreeD before the reply: a studio's renderer waits for it, the client less so.
+                try:
+                    if stream.sender.send(shaped.R, shaped.t):
+                        timing_ms = {**timing_ms, "freed": round((time.monotonic() - arrived) * 1e3, 3)}
+                except OSError as exc:
+                    now = time.monotonic()
+                    if now - stream.freed_notice_at >= RATE_LIMIT_NOTICE_S:
+                        stream.freed_notice_at = now
+                        await _error(channel, "freed", f"frame {seq}: the FreeD packet to "
+                                     f"{stream.sender.to.host}:{stream.sender.to.port} was not sent ({exc})", seq)
             await channel.send(TrackFrame(
-                seq=seq, width=result.width, height=result.height, targets=result.targets, pose=result.pose,
-                pose_error=result.pose_error, timing_ms=result.timing_ms, dropped=dropped, scan=result.scan,
+                seq=seq, width=result.width, height=result.height, targets=result.targets, pose=shaped.pose,
+                pose_error=result.pose_error, timing_ms=timing_ms, dropped=dropped, scan=result.scan,
                 scan_reason=result.scan_reason,  # type: ignore[arg-type]
+                filtered=shaped.filtered,
             ))
 
+    async def _configure(self, channel: TrackChannel, stream: _Stream, text: str) -> None:
+        config = await _parse_config(channel, text)
+        if config is None:
+            return
+        if config.freed != stream.config.freed or stream.sender is None:
+            try:
+                await self._use_freed(channel, stream, config)
+            except FreeDUnusable as exc:
+                await _error(channel, "freed", f"{exc}; the config is not applied")
+                return
+        stream.config = config
+        await channel.send(config)
 
-async def _configure(channel: TrackChannel, stream: _Stream, text: str) -> None:
+
+async def _parse_config(channel: TrackChannel, text: str) -> TrackConfig | None:
+    """The config in a text message, or None after telling the client why not."""
     if len(text) > MAX_CONFIG_CHARS:
         await _error(channel, "bad_message", f"a text message has {len(text)} characters; a config has at most "
                      f"{MAX_CONFIG_CHARS}")
-        return
+        return None
     try:
         message = load_json(text)
     except (ValueError, RecursionError):  # JSONDecodeError, or nesting deeper than Python's stack
         await _error(channel, "bad_message", "text messages must be JSON objects of at most "
                      f"{MAX_JSON_KEYS} keys; frames go as binary messages")
-        return
+        return None
     if not isinstance(message, dict) or message.get("type") != "config":
         await _error(channel, "bad_message", 'the only text message is {"type": "config", ...}')
-        return
+        return None
     try:
-        stream.config = TrackConfig.model_validate(message)
+        return TrackConfig.model_validate(message)
     except ValidationError as exc:
         await _error(channel, "bad_config", error_summary(exc.errors(include_url=False, include_input=False)))
-        return
-    await channel.send(stream.config)
+        return None
 
 
 async def _error(channel: TrackChannel, code: TrackErrorCode, message: str, seq: int | None = None) -> None:

@@ -107,8 +107,13 @@ def test_track_messages_are_schemas_of_the_document_with_their_examples(openapi:
     # The parts they share with the HTTP replies are the same schemas.
     plain = create_app().openapi()["components"]["schemas"]
     messages = track_message_schemas()
+    def without_null_defaults(schema: Any) -> Any:  # FastAPI's encoder drops them from the HTTP document
+        if isinstance(schema, dict):
+            return {k: without_null_defaults(v) for k, v in schema.items() if not (k == "default" and v is None)}
+        return [without_null_defaults(v) for v in schema] if isinstance(schema, list) else schema
+
     for shared in ("CameraModel", "DetectedTargetOut", "PoseOut"):
-        assert {**messages[shared], "examples": None} == {**plain[shared], "examples": None}
+        assert without_null_defaults({**messages[shared], "examples": 0}) == {**plain[shared], "examples": 0}
     # Every reference of the completed document resolves; completing it again changes nothing.
     text = json.dumps(openapi)
     for ref in {part.split('"')[0] for part in text.split('"$ref": "#/components/schemas/')[1:]}:

@@ -13,12 +13,10 @@ from starlette.websockets import WebSocketDisconnect
 
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
-
+from tests.routers.conftest import Pan
 
 #: A scene of three cards, its camera, three poses and their frames (JPEG).
 World = tuple[scenes.Scene, Camera, list[Pose], list[bytes]]
-#: A room, its camera, a pan's poses, their frames (JPEG) and the cards each frame shows.
-Pan = tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]]
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +62,8 @@ def test_config_and_bad_messages(client: TestClient, world: World, environment: 
         ws.receive_json()
         ws.send_text(json.dumps({"type": "config", "method": "posit"}))
         assert ws.receive_json() == {"type": "config", "method": "posit", "estimate_focal": False,
-                                     "intrinsics": None, "regions": True, "full_scan_every": 30}
+                                     "intrinsics": None, "regions": True, "full_scan_every": 30, "frame": "opencv",
+                                     "tilt": "track", "smoothing": None, "predict_ms": 0.0, "freed": None}
         ws.send_text(json.dumps({"type": "config", "method": "magic"}))
         assert ws.receive_json()["code"] == "bad_config"
         ws.send_text("hello")
@@ -178,33 +177,6 @@ def test_locate_one_image(client: TestClient, world: World, environment: int) ->
 
 
 # --- regions of interest (per-connection tracking state) ----------------------------
-
-
-@pytest.fixture(scope="module")
-def pan() -> Pan:
-    """A camera turning 1.5 degrees a frame in a room: cards enter the view on the way."""
-    rng = np.random.default_rng(1)
-    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
-    scene = scenes.room_scene(rng, (6.0, 5.0, 3.0), n_targets=24, marker_size_m=0.2)
-    eye = np.array([3.0, 2.5, 1.5])
-    poses = []
-    for k in range(10):
-        yaw = np.deg2rad(210 + 1.5 * k)
-        poses.append(Pose.look_at(eye + [0.01 * k, 0.0, 0.0], eye + [np.cos(yaw), np.sin(yaw), -0.05]))
-    frames, visible = [], []
-    for pose in poses:
-        image, truth = scenes.render_frame(scene, camera, pose, rng, degrade.PRESETS["none"].sample(rng))
-        frames.append(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes())
-        visible.append({t.id for t in truth.visible_targets() if t.disc_diameter_px > 6})
-    return scene, camera, poses, frames, visible
-
-
-@pytest.fixture
-def pan_environment(client: TestClient, pan: Pan) -> int:
-    scene, camera, _, _, _ = pan
-    env = client.post("/environments", json={"name": "pan", "marker_size_m": 0.2}).json()
-    assert client.put(f"/environments/{env['id']}/map", json=scene.map_document(camera)).status_code == 200
-    return int(env["id"])
 
 
 def _stream(ws: WebSocketTestSession, frames: list[bytes], config: dict | None = None) -> list[dict]:
@@ -339,7 +311,7 @@ def test_track_state_reasons_without_a_server() -> None:
     state = TrackState()
 
     def seen(pose: Pose, focal: float = 820.0) -> SimpleNamespace:
-        return SimpleNamespace(pose=pose, focal_px=focal)
+        return SimpleNamespace(pose=pose, focal_px=focal, tilt_from_track=False)
 
     assert state.plan(0, camera, config, targets) == (None, "first")
     state.update(0, camera, seen(Pose.identity()), full=True)

@@ -16,7 +16,7 @@ degenerate geometry) is refused rather than reported.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import NamedTuple
 
@@ -101,6 +101,12 @@ class PoseEstimate:
         Targets refused as outliers.
     method : str
         One of `METHODS`.
+    ambiguous : bool
+        The pose rests on one target whose two tilts both fit its discs (the planar
+        two-fold ambiguity): the other tilt was a candidate too.
+    tilt_from_track : bool
+        A prior pose (the track's prediction) chose a tilt other than the one with the
+        lower reprojection error: without the track the pose would have flipped.
     """
 
     pose: Pose
@@ -113,6 +119,8 @@ class PoseEstimate:
     target_ids: list[int]  # the targets the pose rests on (inliers)
     rejected_ids: list[int]  # targets refused as outliers
     method: str
+    ambiguous: bool = False
+    tilt_from_track: bool = False
 
     def to_dict(self) -> dict[str, object]:
         """The estimate as JSON-able values (the service's pose document).
@@ -121,8 +129,8 @@ class PoseEstimate:
         -------
         dict
             ``R``, ``t``, ``position`` (metres), ``reprojection_rms_px``, ``n_targets``,
-            ``n_points``, ``covariance_position`` (m^2), ``focal_px``, ``method`` and
-            ``rejected_targets``.
+            ``n_points``, ``covariance_position`` (m^2), ``focal_px``, ``method``,
+            ``rejected_targets``, ``ambiguous`` and ``tilt_from_track``.
         """
         return {
             "R": self.pose.R.tolist(),
@@ -135,6 +143,8 @@ class PoseEstimate:
             "focal_px": float(self.focal_px),
             "method": self.method,
             "rejected_targets": self.rejected_ids,
+            "ambiguous": self.ambiguous,
+            "tilt_from_track": self.tilt_from_track,
         }
 
 
@@ -468,6 +478,16 @@ GAUSS_NEWTON_ITERATIONS = 8
 #: optimum's cost (floored at FLOOR_PX per point): see `_fit_all`.
 HOPELESS_START = 1e3
 FLOOR_PX = 0.1
+#: One target's two tilts are both candidates when the worse one's reprojection cost is
+#: within this multiple of the better one's (floored at AMBIGUOUS_FLOOR_PX per point).
+#: Four discs leave two degrees of freedom over the pose, so at the true tilt the cost
+#: is noise alone and often larger than the wrong tilt's; beyond a tenfold cost the
+#: worse tilt does not fit (bench/bench_motion.py counts the flips either way).
+AMBIGUOUS_COST_RATIO = 10.0
+AMBIGUOUS_FLOOR_PX = 0.3
+#: ... and when their rotations are this far apart (rad, 2 degrees): a near-frontal card's
+#: two optima lie closer, and which one is taken changes nothing a client would notice.
+AMBIGUOUS_APART_RAD = np.radians(2.0)
 
 
 class _Fit(NamedTuple):
@@ -570,11 +590,38 @@ def _fit(K: np.ndarray, dist: np.ndarray, world: np.ndarray, image: np.ndarray,
 # --- the methods ----------------------------------------------------------------------
 
 
+def _choose_tilt(found: list[_Fit], n_points: int, prior: Pose | None) -> tuple[_Fit, bool, bool]:
+    """One target's optimum (``found``: distinct, best first): (fit, ambiguous,
+    tilt_from_track).
+
+    When both tilts fit, the one nearer in rotation to ``prior`` (the track's
+    prediction) is taken: a track does not turn by tens of degrees between frames, the
+    wrong tilt does.
+    """
+    best = found[0]
+    bound = AMBIGUOUS_COST_RATIO * max(best.cost, n_points * AMBIGUOUS_FLOOR_PX**2)
+    R_best = cv2.Rodrigues(best.rvec)[0]
+    apart = 1 + 2 * np.cos(AMBIGUOUS_APART_RAD)  # trace(R_a R_b^T) = 1 + 2 cos(angle)
+    candidates = [best] + [fit for fit in found[1:]
+                           if fit.cost <= bound and float(np.trace(cv2.Rodrigues(fit.rvec)[0] @ R_best.T)) < apart]
+    if len(candidates) < 2:
+        return best, False, False
+    if prior is None:
+        return best, True, False
+
+    def turn(fit: _Fit) -> float:  # the rotation angle to the prior, via its cosine
+        return -float(np.trace(cv2.Rodrigues(fit.rvec)[0] @ prior.R.T))
+
+    chosen = min(candidates, key=turn)
+    return chosen, True, chosen is not best
+
+
 def nonlinear(
     observations: Sequence[TargetObservation],
     camera: Camera,
     estimate_focal: bool = False,
     outlier_px: float = 3.0,
+    prior: Pose | None = None,
 ) -> PoseEstimate:
     """The paper's method: minimise reprojection error over every visible target.
 
@@ -592,6 +639,9 @@ def nonlinear(
         Free the focal length too (zoom lenses; needs at least 2 targets).
     outlier_px : float, optional
         A target whose worst disc is off by more than this (pixels) is an outlier.
+    prior : Pose, optional
+        The pose expected (a track's prediction): with one target whose two tilts both
+        fit, the tilt nearer to it is taken rather than the one with the lower error.
 
     Returns
     -------
@@ -609,7 +659,14 @@ def nonlinear(
     if estimate_focal and n < 2:
         raise PoseUndetermined("estimating the focal length needs at least 2 targets")
     K, dist = camera.K, camera.dist
-    _, rvec, tvec, linearised = _fit(K, dist, world, image, spread)
+    ambiguous = from_track = False
+    if n == 1:
+        found = _distinct(_fit_all(K, dist, world, image, spread))
+        if not found:
+            raise PoseUndetermined("no initial pose found")
+        (_, rvec, tvec, linearised), ambiguous, from_track = _choose_tilt(found, len(world), prior)
+    else:
+        _, rvec, tvec, linearised = _fit(K, dist, world, image, spread)
     inliers = np.ones(n, bool)
     residual = linearised[0]
     # Every point within outlier_px (the usual case) <=> every target's worst point is.
@@ -636,8 +693,9 @@ def nonlinear(
     else:
         ids = [o.id for o, k in zip(observations, inliers, strict=True) if k]
         rejected = [o.id for o, k in zip(observations, inliers, strict=True) if not k]
-    return _estimate(K, dist, rvec, tvec, world, image, estimate_focal, "nonlinear", ids, rejected, linearised,
-                     map_variance=variance, map_group=group)
+    estimate = _estimate(K, dist, rvec, tvec, world, image, estimate_focal, "nonlinear", ids, rejected, linearised,
+                         map_variance=variance, map_group=group)
+    return replace(estimate, ambiguous=ambiguous, tilt_from_track=from_track) if ambiguous else estimate
 
 
 def _consensus(camera: Camera, image: np.ndarray, world: np.ndarray, owner: np.ndarray, n: int,
@@ -664,7 +722,7 @@ def _consensus(camera: Camera, image: np.ndarray, world: np.ndarray, owner: np.n
     return best if best.sum() >= 1 else np.ones(n, bool)
 
 
-def single(observations: Sequence[TargetObservation], camera: Camera) -> PoseEstimate:
+def single(observations: Sequence[TargetObservation], camera: Camera, prior: Pose | None = None) -> PoseEstimate:
     """Pose from the single target that is largest in the image, nonlinear on its discs.
 
     Parameters
@@ -672,6 +730,8 @@ def single(observations: Sequence[TargetObservation], camera: Camera) -> PoseEst
     observations : sequence of TargetObservation
         Identified targets; only the largest is used.
     camera : Camera
+    prior : Pose, optional
+        The pose expected: of two tilts that both fit, the nearer is taken.
 
     Returns
     -------
@@ -685,15 +745,19 @@ def single(observations: Sequence[TargetObservation], camera: Camera) -> PoseEst
     def area(o: TargetObservation) -> float:
         return float(cv2.contourArea(np.asarray(o.image, np.float32)))
 
-    return _single(max(observations, key=area), camera)
+    return _single(max(observations, key=area), camera, prior)
 
 
-def _single(observation: TargetObservation, camera: Camera) -> PoseEstimate:
+def _single(observation: TargetObservation, camera: Camera, prior: Pose | None = None) -> PoseEstimate:
     image, world, counts = _stack([observation])
     _check_determined(world)
-    _, rvec, tvec, linearised = _fit(camera.K, camera.dist, world, image)
-    return _estimate(camera.K, camera.dist, rvec, tvec, world, image, False, "single", [observation.id], [],
-                     linearised, map_variance=_map_variance([observation]), map_group=_map_groups(counts))
+    found = _optima(camera.K, camera.dist, world, image)
+    if not found:
+        raise PoseUndetermined("no initial pose found")
+    (_, rvec, tvec, linearised), ambiguous, from_track = _choose_tilt(found, len(world), prior)
+    estimate = _estimate(camera.K, camera.dist, rvec, tvec, world, image, False, "single", [observation.id], [],
+                         linearised, map_variance=_map_variance([observation]), map_group=_map_groups(counts))
+    return replace(estimate, ambiguous=ambiguous, tilt_from_track=from_track) if ambiguous else estimate
 
 
 #: Two optima whose rotations differ by less than this (rad, ~0.1 deg) are one: on a
@@ -703,8 +767,13 @@ SAME_OPTIMUM_RAD = 2e-3
 
 def _optima(K: np.ndarray, dist: np.ndarray, world: np.ndarray, image: np.ndarray) -> list[_Fit]:
     """The distinct local optima reached from the starts of ``_fit_all``, best first."""
+    return _distinct(_fit_all(K, dist, world, image))
+
+
+def _distinct(found: list[_Fit]) -> list[_Fit]:
+    """``found`` (best first) without the optima that repeat a better one."""
     distinct: list[tuple[_Fit, np.ndarray]] = []
-    for fit in _fit_all(K, dist, world, image):
+    for fit in found:
         R = cv2.Rodrigues(fit.rvec)[0]
         # |R_a - R_b| entries are at most the angle between them (small angles)
         if all(np.abs(R - other).max() > SAME_OPTIMUM_RAD for _, other in distinct):
@@ -948,6 +1017,7 @@ def estimate_pose(
     camera: Camera,
     method: str = "nonlinear",
     estimate_focal: bool = False,
+    prior: Pose | None = None,
 ) -> PoseEstimate:
     """The camera pose from the identified targets in one image (paper §5.2-5.3).
 
@@ -961,6 +1031,9 @@ def estimate_pose(
         "nonlinear" is the paper's method; the others are for comparison (Table 1).
     estimate_focal : bool, optional
         Free the focal length too ("nonlinear" only, at least 2 targets).
+    prior : Pose, optional
+        The pose a track expects ("nonlinear" and "single"): a lone target's two tilts,
+        when both fit, are decided by it rather than by the lower error.
 
     Returns
     -------
@@ -980,8 +1053,8 @@ def estimate_pose(
         raise ValueError(f"unknown pose method {method!r}; known: {', '.join(METHODS)}")
     if estimate_focal and method != "nonlinear":
         raise PoseUndetermined(f"focal estimation needs the nonlinear method, not {method!r}")
-    estimator = {"nonlinear": partial(nonlinear, estimate_focal=estimate_focal), "posit": posit, "mean": mean,
-                 "single": single}[method]
+    estimator = {"nonlinear": partial(nonlinear, estimate_focal=estimate_focal, prior=prior), "posit": posit,
+                 "mean": mean, "single": partial(single, prior=prior)}[method]
     try:
         return estimator(observations, camera)
     except (np.linalg.LinAlgError, cv2.error) as exc:

@@ -31,16 +31,23 @@ __all__ = [
     "PredictedTarget",
     "Region",
     "RegionParams",
+    "decode_reduction",
+    "disc_diameters",
     "extrapolate",
     "merge_regions",
     "plan_regions",
+    "predict_in_view",
     "predict_regions",
     "predict_targets",
+    "reduce_regions",
 ]
 
 #: Card corners from the disc centres: discs sit at 0.2 / 0.8 of the card side, so the
 #: card's corners are 0.5 / 0.3 = 5/3 as far from the card centre as its discs.
 _CORNER_SCALE = 5.0 / 3.0
+#: A disc's diameter over the distance between neighbouring disc centres: radius 0.125
+#: of the card side, centres 0.6 of it apart.
+_DISC_PER_SIDE = 0.25 / 0.6
 
 
 @dataclass(frozen=True)
@@ -456,6 +463,29 @@ def plan_regions(predicted: list[PredictedTarget], width: int, height: int, para
     return regions
 
 
+def predict_in_view(targets: MapTargets, camera: Camera, last: Pose, steps: float = 1.0,
+                    before: Pose | None = None, before_steps: float = 1.0,
+                    params: RegionParams | None = None) -> list[PredictedTarget]:
+    """The map targets the next frame of a tracking stream should see, and where.
+
+    Parameters
+    ----------
+    targets, camera, last, steps, before, before_steps, params
+        As `predict_regions`.
+
+    Returns
+    -------
+    list of PredictedTarget
+        As `predict_targets`: the pose extrapolated from `before` and `last` when there
+        is a `before`, else `last` with the margins of a camera whose motion is unknown.
+    """
+    p = params or RegionParams()
+    if before is not None:
+        pose = extrapolate(before, last, steps / max(before_steps, 1e-9))
+        return predict_targets(targets, camera, pose, previous=last, steps=steps, params=p)
+    return predict_targets(targets, camera, last, previous=None, steps=steps, params=p)
+
+
 def predict_regions(targets: MapTargets, camera: Camera, last: Pose, steps: float = 1.0,
                     before: Pose | None = None, before_steps: float = 1.0,
                     params: RegionParams | None = None) -> list[Region] | None:
@@ -483,9 +513,113 @@ def predict_regions(targets: MapTargets, camera: Camera, last: Pose, steps: floa
         can be in view.
     """
     p = params or RegionParams()
-    if before is not None:
-        pose = extrapolate(before, last, steps / max(before_steps, 1e-9))
-        predicted = predict_targets(targets, camera, pose, previous=last, steps=steps, params=p)
-    else:
-        predicted = predict_targets(targets, camera, last, previous=None, steps=steps, params=p)
+    predicted = predict_in_view(targets, camera, last, steps, before, before_steps, p)
     return plan_regions(predicted, camera.width, camera.height, p)
+
+
+# --------------------------------------------------------------------------------------
+# Decoding a frame smaller
+# --------------------------------------------------------------------------------------
+
+
+def disc_diameters(predicted: list[PredictedTarget]) -> np.ndarray:
+    """Each predicted target's smallest disc diameter, pixels: the disc square's shortest
+    side times the disc's share of it (a card seen at an angle is narrowest across its
+    shortest side, and so are its discs).
+
+    Parameters
+    ----------
+    predicted : list of PredictedTarget
+
+    Returns
+    -------
+    (N,) ndarray
+    """
+    if not predicted:
+        return np.zeros(0)
+    discs = np.array([t.discs_px for t in predicted])  # (N, 4, 2)
+    sides = np.linalg.norm(discs - np.roll(discs, -1, axis=1), axis=2)
+    return _DISC_PER_SIDE * sides.min(axis=1)
+
+
+def decode_reduction(predicted: list[PredictedTarget], width: int, height: int, min_disc_px: float,
+                     factors: tuple[int, ...] = (1, 2, 4), min_side: int = 0) -> int:
+    """The largest factor a frame can be decoded smaller by and still show every predicted
+    disc at least `min_disc_px` across, in a frame at least `min_side` pixels high and wide.
+
+    `min_disc_px` keeps every predicted card within the detector's reach (its smallest
+    discs are 3.5 px across). The detector measures disc centres to a fraction of its own
+    pixels, so a frame decoded at 1 / f measures them f times coarser in the frame's
+    pixels: `min_side` keeps enough pixels for the pose's precision. Only the targets
+    predicted on the image count (a card beyond its edge is not scanned).
+
+    Parameters
+    ----------
+    predicted : list of PredictedTarget
+        The targets the next frame should see (`predict_in_view`).
+    width, height : int
+        Frame size, pixels.
+    min_disc_px : float
+        Smallest disc diameter, pixels of the reduced frame.
+    factors : tuple of int, optional
+        The factors to choose from, ascending (the decoder's: 1, 2, 4, 8).
+    min_side : int, optional
+        Smallest side of the reduced frame, pixels.
+
+    Returns
+    -------
+    int
+        One of `factors`; the first when no target is predicted (nothing tells how
+        small the discs to find are).
+    """
+    # Factors the frame's size allows first: none, and nothing needs predicting.
+    sized = [f for f in factors if -(-min(width, height) // f) >= min_side]
+    if len(sized) < 2 or not predicted:
+        return factors[0]
+    discs = np.array([t.discs_px for t in predicted])  # (N, 4, 2)
+    on = ((discs[..., 0] >= -0.5) & (discs[..., 0] <= width - 0.5)
+          & (discs[..., 1] >= -0.5) & (discs[..., 1] <= height - 0.5)).any(axis=1)
+    if not on.any():
+        return factors[0]
+    sides = np.linalg.norm(discs[on] - np.roll(discs[on], -1, axis=1), axis=2)
+    smallest = _DISC_PER_SIDE * float(sides.min())
+    fitting = [f for f in sized if smallest / f >= min_disc_px]
+    return max(fitting) if fitting else factors[0]
+
+
+def reduce_regions(regions: list[Region], factor: int, width: int, height: int, align: int = 8) -> list[Region]:
+    """Crops of a frame in the pixels of the frame decoded at 1 / `factor`.
+
+    Each crop covers at least the frame's crop (pixel ``i`` of the reduced frame covers
+    the frame's pixels ``i * factor`` to ``(i + 1) * factor - 1``), snapped outward to
+    multiples of `align` in the reduced frame, where the detector's pyramid reads it.
+
+    Parameters
+    ----------
+    regions : list of Region
+        Crops in the frame's pixels.
+    factor : int
+        The reduction.
+    width, height : int
+        Size of the reduced frame, pixels.
+    align : int, optional
+        A multiple of 8.
+
+    Returns
+    -------
+    list of Region
+        The crops, merged where the snapping makes them meet.
+    """
+    if factor == 1:
+        return list(regions)
+    def up(value: int) -> int:  # the reduced pixel that covers `value - 1`, then the grid, rounded up
+        reduced = -(-value // factor)
+        return -(-reduced // align) * align
+
+    out = []
+    for r in regions:
+        x0, y0 = r.x0 // factor // align * align, r.y0 // factor // align * align
+        x1, y1 = min(width, up(r.x1)), min(height, up(r.y1))
+        if x1 > x0 and y1 > y0:
+            out.append(Region(x0, y0, x1, y1, r.ids))
+    return merge_regions(out)

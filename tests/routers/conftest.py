@@ -1,0 +1,41 @@
+"""Fixtures of the /track tests: a room and a camera panning through it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.core.geometry.camera import Camera, Pose
+from app.sim import degrade, scenes
+
+#: A room, its camera, a pan's poses, their frames (JPEG) and the cards each frame shows.
+Pan = tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]]
+
+
+@pytest.fixture(scope="module")
+def pan() -> Pan:
+    """A camera turning 1.5 degrees a frame in a room: cards enter the view on the way."""
+    rng = np.random.default_rng(1)
+    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
+    scene = scenes.room_scene(rng, (6.0, 5.0, 3.0), n_targets=24, marker_size_m=0.2)
+    eye = np.array([3.0, 2.5, 1.5])
+    poses = []
+    for k in range(10):
+        yaw = np.deg2rad(210 + 1.5 * k)
+        poses.append(Pose.look_at(eye + [0.01 * k, 0.0, 0.0], eye + [np.cos(yaw), np.sin(yaw), -0.05]))
+    frames, visible = [], []
+    for pose in poses:
+        image, truth = scenes.render_frame(scene, camera, pose, rng, degrade.PRESETS["none"].sample(rng))
+        frames.append(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes())
+        visible.append({t.id for t in truth.visible_targets() if t.disc_diameter_px > 6})
+    return scene, camera, poses, frames, visible
+
+
+@pytest.fixture
+def pan_environment(client: TestClient, pan: Pan) -> int:
+    scene, camera, _, _, _ = pan
+    env = client.post("/environments", json={"name": "pan", "marker_size_m": 0.2}).json()
+    assert client.put(f"/environments/{env['id']}/map", json=scene.map_document(camera)).status_code == 200
+    return int(env["id"])
