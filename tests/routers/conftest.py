@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketTestSession
 
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
@@ -39,3 +42,20 @@ def pan_environment(client: TestClient, pan: Pan) -> int:
     env = client.post("/environments", json={"name": "pan", "marker_size_m": 0.2}).json()
     assert client.put(f"/environments/{env['id']}/map", json=scene.map_document(camera)).status_code == 200
     return int(env["id"])
+
+
+def stream_frames(ws: WebSocketTestSession, frames: list[bytes], config: dict | None = None,
+                  hello: bool = True) -> list[dict]:
+    """Send `frames` in lock-step on an open /track connection, after reading its hello
+    (unless `hello` is False) and sending `config`; the frame replies, in order."""
+    if hello:
+        assert ws.receive_json()["type"] == "hello"
+    if config is not None:
+        ws.send_text(json.dumps({"type": "config", **config}))
+        assert ws.receive_json()["type"] == "config"
+    replies = []
+    for frame in frames:
+        ws.send_bytes(frame)
+        replies.append(ws.receive_json())
+        assert replies[-1]["type"] == "frame", replies[-1]
+    return replies

@@ -8,12 +8,11 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from starlette.testclient import WebSocketTestSession
 from starlette.websockets import WebSocketDisconnect
 
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
-from tests.routers.conftest import Pan
+from tests.routers.conftest import Pan, stream_frames
 
 #: A scene of three cards, its camera, three poses and their frames (JPEG).
 World = tuple[scenes.Scene, Camera, list[Pose], list[bytes]]
@@ -179,26 +178,13 @@ def test_locate_one_image(client: TestClient, world: World, environment: int) ->
 # --- regions of interest (per-connection tracking state) ----------------------------
 
 
-def _stream(ws: WebSocketTestSession, frames: list[bytes], config: dict | None = None) -> list[dict]:
-    assert ws.receive_json()["type"] == "hello"
-    if config is not None:
-        ws.send_text(json.dumps({"type": "config", **config}))
-        assert ws.receive_json()["type"] == "config"
-    replies = []
-    for frame in frames:
-        ws.send_bytes(frame)
-        replies.append(ws.receive_json())
-        assert replies[-1]["type"] == "frame"
-    return replies
-
-
 def test_regions_give_the_poses_of_full_scans(client: TestClient, pan: Pan, pan_environment: int) -> None:
     _, _, poses, frames, visible = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:
-        on = _stream(ws, frames, {"full_scan_every": 1000})  # regions (the default), no periodic full scan
+        on = stream_frames(ws, frames, {"full_scan_every": 1000})  # regions (the default), no periodic full scan
     with client.websocket_connect(url) as ws:
-        off = _stream(ws, frames, {"regions": False})
+        off = stream_frames(ws, frames, {"regions": False})
     # Frame 1 has a position but no velocity yet: the wider margins may cover most of
     # the frame ("wide": a full scan); from frame 2 on, regions only.
     assert on[0]["scan_reason"] == "first" and on[1]["scan_reason"] in ("regions", "wide")
@@ -224,14 +210,14 @@ def test_full_scans_first_periodically_and_after_losing_track(client: TestClient
     _, _, _, frames, _ = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:
-        replies = _stream(ws, frames, {"full_scan_every": 3})
+        replies = stream_frames(ws, frames, {"full_scan_every": 3})
     scans = "".join("R" if r["scan"] == "regions" else "F" for r in replies)
     assert scans[0] == "F" and "RRR" not in scans and "RR" in scans, scans
     assert "periodic" in {r["scan_reason"] for r in replies}
 
     blank = cv2.imencode(".jpg", np.full((480, 640), 200, np.uint8))[1].tobytes()
     with client.websocket_connect(url) as ws:
-        replies = _stream(ws, [*frames[:4], blank, *frames[4:8]], {"full_scan_every": 1000})
+        replies = stream_frames(ws, [*frames[:4], blank, *frames[4:8]], {"full_scan_every": 1000})
     reasons = [r["scan_reason"] for r in replies]
     # 0 first; 1 (no velocity yet: maybe too wide); 2, 3 regions; 4 blank: the regions
     # give no pose, so the whole frame is searched at once (fallback) and the track is
@@ -246,7 +232,7 @@ def test_new_intrinsics_mean_a_full_scan(client: TestClient, pan: Pan, pan_envir
     _, camera, _, frames, _ = pan
     intrinsics = {**camera.to_dict(), "K": (camera.K * [[1.01], [1.01], [1]]).tolist()}
     with client.websocket_connect(f"/track?environment_id={pan_environment}") as ws:
-        replies = _stream(ws, frames[:3])
+        replies = stream_frames(ws, frames[:3])
         ws.send_text(json.dumps({"type": "config", "intrinsics": intrinsics}))
         assert ws.receive_json()["regions"] is True
         for frame in frames[3:5]:
@@ -273,7 +259,7 @@ def test_tracking_state_is_per_connection(client: TestClient, pan: Pan, pan_envi
             assert rb["scan_reason"] == "off" and rb["pose"] is not None and ra["pose"] is not None
     # A new connection starts afresh.
     with client.websocket_connect(url) as c:
-        assert _stream(c, frames[5:6])[0]["scan_reason"] == "first"
+        assert stream_frames(c, frames[5:6])[0]["scan_reason"] == "first"
 
 
 def test_locate_scans_the_whole_frame(client: TestClient, pan: Pan, pan_environment: int) -> None:

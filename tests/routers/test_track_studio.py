@@ -16,8 +16,7 @@ from fastapi.testclient import TestClient
 from app.core.geometry import from_convention
 from app.main import create_app
 from app.settings import Settings
-from tests.routers.conftest import Pan
-from tests.routers.test_track import _stream
+from tests.routers.conftest import Pan, stream_frames
 
 
 @pytest.fixture
@@ -90,7 +89,7 @@ def test_the_environments_freed_output_sends_every_pose(client: TestClient, pan:
     assert put.status_code == 200, put.text
     blank = cv2.imencode(".jpg", np.full((480, 640), 128, np.uint8))[1].tobytes()
     with client.websocket_connect(f"/track?environment_id={pan_environment}") as ws:
-        replies = _stream(ws, [*frames[:4], blank, frames[4]])
+        replies = stream_frames(ws, [*frames[:4], blank, frames[4]])
     assert replies[4]["pose"] is None  # no pose: no packet
     posed = [r for r in replies if r["pose"] is not None]
     assert len(posed) == 5
@@ -107,20 +106,20 @@ def test_a_connection_chooses_its_receiver_camera_id_or_none(client: TestClient,
     _, _, _, frames, _ = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:  # no output in the environment: nothing unless asked
-        _stream(ws, frames[:2])
+        stream_frames(ws, frames[:2])
     assert _nothing_more(receiver)
     own = {"freed": {"host": "127.0.0.1", "port": _port(receiver), "camera_id": 3}}
     with client.websocket_connect(url) as ws:
-        replies = _stream(ws, frames[:3], own)
+        replies = stream_frames(ws, frames[:3], own)
     for packet, reply in zip(_packets(receiver, 3), replies, strict=True):
         assert packet["camera"] == 3
         _check_packet(packet, reply["pose"])
     client.put(f"/environments/{pan_environment}/freed", json={"host": "127.0.0.1", "port": _port(receiver)})
     with client.websocket_connect(url) as ws:  # a preview beside the studio camera opts out
-        _stream(ws, frames[:2], {"freed": {"enabled": False}})
+        stream_frames(ws, frames[:2], {"freed": {"enabled": False}})
     assert _nothing_more(receiver)
     with client.websocket_connect(url) as ws:  # the environment's receiver, its own camera id
-        _stream(ws, frames[:2], {"freed": {"camera_id": 200}})
+        stream_frames(ws, frames[:2], {"freed": {"camera_id": 200}})
     assert [p["camera"] for p in _packets(receiver, 2)] == [200, 200]
 
 
@@ -156,19 +155,9 @@ def test_a_server_can_keep_connections_to_the_environments_receiver(tmp_path: Pa
             ws.send_text(json.dumps({"type": "config", "freed": {"host": "127.0.0.1", "port": 9}}))
             error = ws.receive_json()
             assert error["code"] == "freed" and "leave out host and port" in error["message"]
-            replies = _stream_more(ws, frames[:2], {"freed": {"camera_id": 4}})
+            replies = stream_frames(ws, frames[:2], {"freed": {"camera_id": 4}}, hello=False)
         assert [p["camera"] for p in _packets(receiver, 2)] == [4, 4]
         assert all(r["pose"] is not None for r in replies)
-
-
-def _stream_more(ws, frames: list[bytes], config: dict) -> list[dict]:
-    ws.send_text(json.dumps({"type": "config", **config}))
-    assert ws.receive_json()["type"] == "config"
-    replies = []
-    for frame in frames:
-        ws.send_bytes(frame)
-        replies.append(ws.receive_json())
-    return replies
 
 
 def test_the_freed_output_api(client: TestClient, pan_environment: int) -> None:
@@ -204,7 +193,7 @@ FORWARD = {"opencv": (1, 2), "opengl": (-1, 2), "unity": (1, 2), "unreal": (1, 0
 def test_poses_in_client_conventions(client: TestClient, pan: Pan, pan_environment: int, frame: str) -> None:
     _, _, truth, frames, _ = pan
     with client.websocket_connect(f"/track?environment_id={pan_environment}") as ws:
-        replies = _stream(ws, frames[:3], {"frame": frame})
+        replies = stream_frames(ws, frames[:3], {"frame": frame})
     to_world, scale = WORLD[frame]
     for reply, true_pose in zip(replies, truth[:3], strict=True):
         got = reply["pose"]["frame_pose"]
@@ -230,16 +219,16 @@ def test_smoothed_and_predicted_poses_come_when_asked(client: TestClient, pan: P
     _, _, _, frames, _ = pan
     url = f"/track?environment_id={pan_environment}"
     with client.websocket_connect(url) as ws:
-        plain = _stream(ws, frames)
+        plain = stream_frames(ws, frames)
     assert all(r["filtered"] is None for r in plain)
     with client.websocket_connect(url) as ws:
-        smoothed = _stream(ws, frames, {"smoothing": {"min_cutoff_hz": 0.5}, "frame": "unreal"})
+        smoothed = stream_frames(ws, frames, {"smoothing": {"min_cutoff_hz": 0.5}, "frame": "unreal"})
     for reply in smoothed:
         assert reply["filtered"]["smoothed"] and reply["filtered"]["predict_ms"] == 0
         assert reply["filtered"]["frame_pose"]["frame"] == "unreal"
     assert smoothed[0]["filtered"]["position"] == pytest.approx(smoothed[0]["pose"]["position"])
     with client.websocket_connect(url) as ws:
-        predicted = _stream(ws, frames, {"predict_ms": 500})
+        predicted = stream_frames(ws, frames, {"predict_ms": 500})
     last, before = predicted[-1], predicted[-2]
     assert not last["filtered"]["smoothed"] and last["filtered"]["predict_ms"] == 500
     motion = np.array(last["pose"]["position"]) - np.array(before["pose"]["position"])

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
+from tests.routers.conftest import stream_frames
 
 #: A scene of three cards, an HD camera, a short walk and its frames (JPEG).
 Walk = tuple[scenes.Scene, Camera, list[Pose], list[bytes]]
@@ -32,14 +33,7 @@ def walk() -> Walk:
 
 def _stream(client: TestClient, environment: int, frames: list[bytes], regions: bool) -> list[dict]:
     with client.websocket_connect(f"/track?environment_id={environment}") as ws:
-        assert ws.receive_json()["type"] == "hello"
-        ws.send_json({"type": "config", "regions": regions})
-        assert ws.receive_json()["type"] == "config"
-        replies = []
-        for frame in frames:
-            ws.send_bytes(frame)
-            replies.append(ws.receive_json())
-    return replies
+        return stream_frames(ws, frames, {"regions": regions})
 
 
 def test_hd_stream_is_decoded_smaller_and_answers_in_the_frames_pixels(client: TestClient, walk: Walk) -> None:
