@@ -30,6 +30,7 @@ from pydantic import ValidationError
 from app import logs
 from app.schemas import (
     MAX_JSON_KEYS,
+    FreeDOutput,
     TrackCloseCode,
     TrackConfig,
     TrackError,
@@ -42,7 +43,6 @@ from app.schemas import (
     error_summary,
     load_json,
 )
-from app.schemas import FreeDOutput
 from app.services import freed
 from app.services.errors import ServiceError
 from app.services.freed import FreeDSender, FreeDUnusable
@@ -317,7 +317,7 @@ class TrackStreams:
         config = await _parse_config(channel, text)
         if config is None:
             return
-        if config.freed != stream.config.freed or stream.sender is None:
+        if config.freed != stream.config.freed:
             try:
                 await self._use_freed(channel, stream, config)
             except FreeDUnusable as exc:

@@ -246,3 +246,15 @@ def test_smoothed_and_predicted_poses_come_when_asked(client: TestClient, pan: P
             assert ws.receive_json()["type"] == "hello"
             ws.send_text(json.dumps({"type": "config", **bad}))
             assert ws.receive_json()["code"] == "bad_config", bad
+
+
+def test_an_environment_receiver_that_does_not_resolve_is_said_once_and_blocks_nothing(
+        client: TestClient, pan: Pan, pan_environment: int) -> None:
+    _, _, _, frames, _ = pan
+    client.put(f"/environments/{pan_environment}/freed", json={"host": "no-such-host.invalid", "port": 40000})
+    with client.websocket_connect(f"/track?environment_id={pan_environment}") as ws:
+        assert ws.receive_json()["type"] == "hello"
+        error = ws.receive_json()
+        assert error["code"] == "freed" and "resolve" in error["message"]
+        replies = stream_frames(ws, frames[:2], {"frame": "unity"}, hello=False)  # other settings still apply
+    assert [r["pose"]["frame_pose"]["frame"] for r in replies] == ["unity", "unity"]
