@@ -35,12 +35,26 @@ def ws_message_limit(settings: Settings) -> int:
 SHUTDOWN_GRACE_S = 5
 
 
-def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
+def _settings(command: str) -> Settings | None:
+    """The settings from the environment, or None after saying why they cannot be used
+    (a database URL without its driver, a value out of range)."""
+    from pydantic import ValidationError
 
     from app.settings import Settings
 
-    settings = Settings()
+    try:
+        return Settings()
+    except ValidationError as exc:
+        print(f"fidotrack {command}: {exc}", file=sys.stderr)
+        return None
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    settings = _settings("serve")
+    if settings is None:
+        return 2
     if (settings.tls_certfile is None) != (settings.tls_keyfile is None):
         print("fidotrack serve: TLS needs both FIDOTRACK_TLS_CERTFILE and FIDOTRACK_TLS_KEYFILE", file=sys.stderr)
         return 2
@@ -332,9 +346,10 @@ def _keys(args: argparse.Namespace) -> int:
     from app.db import make_engine, make_sessionmaker, upgrade_to_head
     from app.services import keys
     from app.services.errors import ServiceError
-    from app.settings import Settings
 
-    settings = Settings()
+    settings = _settings("keys")
+    if settings is None:
+        return 2
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     try:

@@ -2,7 +2,8 @@
 
 SQLite is the embedded default: it runs with WAL (readers never block the writer),
 foreign keys on (SQLite leaves them off unless asked) and a busy timeout (so two
-workers writing at once wait instead of failing). Any other SQLAlchemy URL works.
+workers writing at once wait instead of failing). PostgreSQL (``postgresql+psycopg://``)
+is the tested alternative; its sessions run in UTC.
 """
 
 from __future__ import annotations
@@ -45,12 +46,17 @@ def utcnow() -> datetime:
 
 
 def make_engine(url: str, busy_timeout_ms: int = 5000) -> Engine:
-    """An engine for ``url``; SQLite connections get WAL, foreign keys and a busy timeout."""
+    """An engine for ``url``; SQLite connections get WAL, foreign keys and a busy timeout,
+    PostgreSQL ones the UTC time zone."""
     is_sqlite = url.startswith("sqlite")
     connect_args: dict[str, object] = {}
     if is_sqlite:
         # Sessions are used from FastAPI's thread pool and from job threads.
         connect_args = {"check_same_thread": False, "timeout": busy_timeout_ms / 1000}
+    elif url.startswith("postgresql"):
+        # Times come back in the session's zone: UTC, whatever the server's default, so
+        # that the API's times read the same on every deployment.
+        connect_args = {"options": "-c timezone=UTC"}
     engine = create_engine(url, connect_args=connect_args, pool_pre_ping=not is_sqlite)
     if is_sqlite:
 
@@ -68,6 +74,19 @@ def make_engine(url: str, busy_timeout_ms: int = 5000) -> Engine:
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
+
+
+def lock_for_writing(session: Session, table: str) -> None:
+    """Make the session's transaction, until it ends, the only one writing `table` (on
+    SQLite: the database), so that a check and the insert it decides cannot interleave
+    with another process's; readers go on. Call it before the transaction's first
+    statement: SQLite takes its write lock with the transaction's BEGIN."""
+    connection = session.connection()
+    if connection.dialect.name == "sqlite":
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+    elif connection.dialect.name == "postgresql":
+        # Conflicts with itself and with writers (ROW EXCLUSIVE), not with readers.
+        connection.exec_driver_sql(f"LOCK TABLE {table} IN SHARE ROW EXCLUSIVE MODE")
 
 
 def alembic_config(connection: Connection | None = None) -> Config:

@@ -4,24 +4,35 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import Field, computed_field
+from pydantic import Field, computed_field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError, NoSuchModuleError
 
 
 #: The most files a survey upload's form is parsed with; `Settings.max_survey_images` may
 #: not exceed it. Past it the form is refused before the service sees it (HTTP 400).
 MAX_SURVEY_FILES = 20000
 
+#: URL schemes taken to mean PostgreSQL through psycopg 3 (the `postgres` extra's driver):
+#: SQLAlchemy reads a bare ``postgresql://`` as psycopg2, which the project does not
+#: install, and refuses ``postgres://``.
+POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+POSTGRES_PSYCOPG = "postgresql+psycopg://"
+
 
 class Settings(BaseSettings):
     """Everything a deployment can set; ``uvicorn app.main:app`` reads these."""
 
-    model_config = SettingsConfigDict(env_prefix="FIDOTRACK_", env_file=None, extra="ignore")
+    # Errors do not echo the values: a database URL may carry a password.
+    model_config = SettingsConfigDict(env_prefix="FIDOTRACK_", env_file=None, extra="ignore",
+                                      hide_input_in_errors=True)
 
     data_dir: Path = Field(Path("data"), description="Directory for the SQLite file, uploads and locks.")
-    database_url: str | None = Field(
-        None, description="Any SQLAlchemy URL; default: a SQLite file under data_dir."
-    )
+    database_url: str | None = Field(None, description=(
+        "A SQLAlchemy URL of the database; default: a SQLite file under data_dir. PostgreSQL: "
+        "`postgresql://user:password@host:5432/name` (psycopg 3, the `postgres` extra; the same as "
+        "`postgresql+psycopg://`)."))
     host: str = Field("127.0.0.1", description="Address where `fidotrack serve` listens.")
     port: int = Field(8000, ge=1, le=65535, description="Port where `fidotrack serve` listens.")
     tls_certfile: Path | None = Field(None, description=(
@@ -79,6 +90,29 @@ class Settings(BaseSettings):
         "different clients already run in parallel (track_threads); 1 keeps idle BLAS "
         "threads from spinning on the cores the other frames need."))
     max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
+
+    @field_validator("database_url")
+    @classmethod
+    def _database_url(cls, url: str | None) -> str | None:
+        """The URL with PostgreSQL's plain schemes read as psycopg 3; refused at start,
+        saying why, when it is not a URL SQLAlchemy knows or its driver is not installed
+        (rather than at the first connection, deep in the start-up)."""
+        if not url:
+            return None
+        for scheme in POSTGRES_SCHEMES:
+            if url.startswith(scheme):
+                url = POSTGRES_PSYCOPG + url[len(scheme):]
+        try:
+            parsed = make_url(url)
+            dialect = parsed.get_dialect()
+        except (ArgumentError, NoSuchModuleError, ValueError) as exc:
+            raise ValueError(f"not a database URL that SQLAlchemy knows: {exc}") from None
+        try:
+            dialect.import_dbapi()
+        except ImportError as exc:
+            hint = " (pip install 'fidotrack[postgres]')" if url.startswith(POSTGRES_PSYCOPG) else ""
+            raise ValueError(f"the driver of {parsed.drivername} URLs is not installed: {exc}{hint}") from None
+        return url
 
     @computed_field  # type: ignore[prop-decorator]
     @property

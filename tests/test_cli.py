@@ -34,3 +34,12 @@ def test_serve_refuses_a_certificate_without_its_key(tmp_path: Path, capsys: pyt
     monkeypatch.setenv("FIDOTRACK_TLS_CERTFILE", str(tmp_path / "cert.pem"))
     assert main(["serve"]) == 2
     assert "FIDOTRACK_TLS_KEYFILE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["serve"], ["keys", "list"]])
+def test_settings_that_cannot_be_used_are_said_without_a_traceback(
+        command: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FIDOTRACK_DATABASE_URL", "mysql+nodriver://db/fidotrack")
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fidotrack {command[0]}: ") and "database_url" in err and "Traceback" not in err

@@ -12,6 +12,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.detection import DiscClassifier, load_default_classifier
+from app.db import lock_for_writing
 from app.models import Classifier, ClassifierArray, Environment, Job
 from app.schemas import ClassifierOut, JobStatus
 from app.services.errors import Conflict, NotFound, get_or_404
@@ -54,9 +55,17 @@ def _default_row_id(session: Session) -> int | None:
 
 
 def install_default(session: Session) -> int:
-    """The shipped default classifier, stored once (first start); returns its id."""
+    """The shipped default classifier, stored once (first start); returns its id. Servers
+    starting together on one database store it once: the first to lock stores it, the
+    others find it."""
     existing = _default_row_id(session)
     if existing is not None:
+        return existing
+    session.rollback()
+    lock_for_writing(session, Classifier.__tablename__)
+    existing = _default_row_id(session)
+    if existing is not None:
+        session.commit()
         return existing
     row = add(session, load_default_classifier(), "default", "builtin", is_default=True)
     session.commit()

@@ -11,7 +11,7 @@ from app.models import Environment, MapVersion, SurveyMap
 from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapChange, MapDocument,
                          MapVersionOut)
 from app.services import classifiers
-from app.services.errors import Conflict, Invalid, NoMap, NotFound, get_or_404
+from app.services.errors import Conflict, Invalid, NoMap, NotFound, can_match, get_or_404
 
 #: Earlier maps kept per environment (`MapVersion`), the newest first.
 MAP_VERSIONS_KEPT = 20
@@ -114,6 +114,9 @@ def stage_map(session: Session, environment_id: int, document: MapDocument, chan
     map it replaces as a version (`change` says what replaced it); the caller commits (a
     survey job commits it together with its own success)."""
     environment = get_row(session, environment_id)
+    if not can_match(document.survey_job_id):
+        # No job id has one, and PostgreSQL cannot store it: refused on every engine alike.
+        raise Invalid("survey_job_id: must not contain NUL")
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
     if outside:
@@ -167,7 +170,7 @@ def restore_map(session: Session, environment_id: int, version: int | None) -> M
         if row is None:
             raise Conflict(f"environment {environment_id} has no earlier map to restore")
     else:
-        row = session.scalar(query.where(MapVersion.id == version))
+        row = session.scalar(query.where(MapVersion.id == version)) if can_match(version) else None
         if row is None:
             raise NotFound(f"environment {environment_id} has no map version {version}")
     return put_map(session, environment_id, MapDocument.model_validate(row.document), MapChange.RESTORE)

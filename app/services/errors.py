@@ -6,9 +6,12 @@ from sqlalchemy.orm import Session
 
 T = TypeVar("T")
 
-#: Database ids are signed 64-bit: a larger one matches nothing, and must not reach the
-#: database driver (which raises OverflowError on it).
+#: The largest id the API takes: signed 64-bit, SQLite's integers (a larger one must not
+#: reach the database driver, which raises OverflowError on it).
 MAX_ID = 2**63 - 1
+#: The largest id a stored row can have on every engine: id columns are 32-bit integers
+#: on PostgreSQL (SQLite's ids count up from 1 and stay far below it).
+MAX_ROW_ID = 2**31 - 1
 
 
 class ServiceError(Exception):
@@ -69,9 +72,20 @@ class Busy(ServiceError):
     status_code = 503
 
 
+def can_match(key: object) -> bool:
+    """Whether a stored row can have `key` as an id or a text key: an integer beyond
+    `MAX_ROW_ID`, or text with a NUL (PostgreSQL's text cannot hold one), matches nothing
+    and must not reach the database, which refuses it (an error, not an empty result)."""
+    if isinstance(key, int):
+        return -MAX_ROW_ID - 1 <= key <= MAX_ROW_ID
+    if isinstance(key, str):
+        return "\x00" not in key
+    return True
+
+
 def get_or_404(session: Session, model: type[T], key: object, what: str) -> T:
     """The row of ``model`` with primary key ``key``, or NotFound("<what> <key> not found")."""
-    row = None if isinstance(key, int) and not -MAX_ID - 1 <= key <= MAX_ID else session.get(model, key)
+    row = session.get(model, key) if can_match(key) else None
     if row is None:
         raise NotFound(f"{what} {key} not found")
     return row

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from app.db import utcnow
 from app.models import Job
 from app.schemas import JobOut, JobStatus
-from app.services.errors import TooMany, get_or_404
+from app.services.errors import TooMany, can_match, get_or_404
 
 #: A job in one of these may still change.
 ACTIVE = (JobStatus.QUEUED, JobStatus.RUNNING)
@@ -71,6 +71,8 @@ def list_recent(session: Session, *, kind: str | None = None, status: JobStatus 
                 environment_id: int | None = None, limit: int = DEFAULT_LISTED) -> list[Job]:
     """The newest `limit` jobs (at most `MAX_LISTED`) of the given kind, status and
     environment (each filter only when given), newest first."""
+    if environment_id is not None and not can_match(environment_id):
+        return []
     query = select(Job)
     if kind is not None:
         query = query.where(Job.kind == kind)
