@@ -9,8 +9,10 @@ Content-Length headers, broken multipart forms, deeply nested / huge / NaN JSON,
 hostile requests of a security review (cheap files that decode to gigabytes, bodies of
 megabytes of JSON, extreme numbers in maps).
 
-Every reply's status is tallied; the last test checks that none was a 5xx and that the
-README's security section states the tally of a full run.
+The whole module runs once per database engine (SQLite, PostgreSQL). Every reply's
+status is tallied per engine; the last test checks that none was a 5xx, that the
+README's security section states the tally of a full run, and that PostgreSQL answered
+every case as SQLite did.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from fastapi.testclient import TestClient
 from app.sim import scenes
 from app.main import create_app
 from app.settings import Settings
-from tests.conftest import example_map
+from tests.conftest import DATABASES, PostgresCluster, example_map
 
 # --- the application under test, with a recorder of escaped exceptions ------------------
 
@@ -54,15 +56,16 @@ class _Recorder:
             raise
 
 
-#: Status codes of every reply of this module's tests, in the order they run.
-TALLY: Counter[int] = Counter()
+#: Status codes of every reply of this module's tests, per database engine.
+TALLY: dict[str, Counter[int]] = {engine: Counter() for engine in DATABASES}
 
 
 class Fuzz:
-    def __init__(self, client: TestClient, recorder: _Recorder, environment_id: int) -> None:
+    def __init__(self, client: TestClient, recorder: _Recorder, environment_id: int, engine: str) -> None:
         self.client = client
         self.recorder = recorder
         self.environment_id = environment_id
+        self.engine = engine
         self.failures: list[str] = []
         self.count = 0
 
@@ -75,7 +78,7 @@ class Fuzz:
         except Exception as exc:  # the client itself blew up: a dead connection/server
             self.failures.append(f"{case}: request raised {exc!r}")
             return
-        TALLY[reply.status_code] += 1
+        TALLY[self.engine][reply.status_code] += 1
         escaped = self.recorder.errors[before:]
         if escaped:
             self.failures.append(f"{case}: application raised {escaped[0][1]!r}")
@@ -109,21 +112,28 @@ def _problem(reply: Any) -> str | None:
     return f"{status} without a detail message: {body!r:.200}"
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, _Recorder, int]]:
-    settings = Settings(data_dir=tmp_path_factory.mktemp("fuzz") / "data", max_image_bytes=256 * 1024,
-                        max_image_pixels=5_000_000)
+@pytest.fixture(scope="module", params=DATABASES)
+def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+           ) -> Iterator[tuple[TestClient, _Recorder, int, str]]:
+    database_url = None
+    if request.param == "postgresql":
+        cluster: PostgresCluster = request.getfixturevalue("postgres_cluster")
+        name = cluster.new_database()
+        request.addfinalizer(lambda: cluster.drop_database(name))  # after the service below stops
+        database_url = cluster.url(name)
+    settings = Settings(data_dir=tmp_path_factory.mktemp("fuzz") / "data", database_url=database_url,
+                        max_image_bytes=256 * 1024, max_image_pixels=5_000_000)
     recorder = _Recorder(create_app(settings))
     with TestClient(recorder, raise_server_exceptions=False) as client:  # type: ignore[arg-type]
         env = client.post("/environments", json={"name": "fuzz", "marker_size_m": 0.2})
         assert env.status_code == 201, env.text
         environment_id = env.json()["id"]
         assert client.put(f"/environments/{environment_id}/map", json=example_map(3)).status_code == 200
-        yield client, recorder, environment_id
+        yield client, recorder, environment_id, request.param
 
 
 @pytest.fixture
-def fuzz(server: tuple[TestClient, _Recorder, int]) -> Fuzz:
+def fuzz(server: tuple[TestClient, _Recorder, int, str]) -> Fuzz:
     return Fuzz(*server)
 
 
@@ -626,12 +636,20 @@ def tally_line(tally: Counter[int]) -> str:
     return f"{sum(tally.values())} requests ({statuses}), none answered with a 5xx"
 
 
-def test_no_reply_was_a_5xx_and_the_readme_states_the_tally(request: pytest.FixtureRequest) -> None:
-    assert TALLY and not [s for s in TALLY if s >= 500], TALLY
+def test_no_reply_was_a_5xx_and_the_readme_states_the_tally(request: pytest.FixtureRequest,
+                                                            server: tuple[TestClient, _Recorder, int, str]) -> None:
+    # Runs last for each engine (it takes `server`, so it comes at the end of each engine's run).
+    engine = server[3]
+    tally = TALLY[engine]
+    assert tally and not [s for s in tally if s >= 500], tally
     module = request.node.module
     selected = {item.name.split("[")[0] for item in request.session.items if item.module is module}
     every = {name for name in dir(module) if name.startswith("test_")}
-    if selected == every:  # a full run of this module (not a -k selection)
+    if selected != every:  # a -k selection, not a full run of this module
+        return
+    if engine == "sqlite":
         stated = re.search(r"\d+ requests \([^)]*\), none answered with a 5xx", README.read_text())
-        assert stated is not None and stated.group(0) == tally_line(TALLY), (
-            f"update the README's security section to: {tally_line(TALLY)}")
+        assert stated is not None and stated.group(0) == tally_line(tally), (
+            f"update the README's security section to: {tally_line(tally)}")
+    else:
+        assert tally == TALLY["sqlite"], f"{engine} answered otherwise than SQLite: {tally} against {TALLY['sqlite']}"
