@@ -768,6 +768,10 @@ class Smoothing(BaseModel):
                                                                  "speed, Hz per rad/s.")
 
 
+#: A host name or an IP address (v4, or v6 without brackets), as a UDP receiver is named.
+HostName = Annotated[str, Field(min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$")]
+
+
 class FreeDOutput(BaseModel):
     """An environment's FreeD output: every /track connection of the environment sends its
     poses as FreeD D1 packets to this receiver (docs/freed.md)."""
@@ -775,7 +779,7 @@ class FreeDOutput(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
         {"host": "192.168.1.40", "port": 40000, "camera_id": 1, "enabled": True}))
 
-    host: str = Field(min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$", description=(
+    host: HostName = Field(description=(
         "Receiver's host name or IP address (the machine running Unreal Engine, Aximmetry, ...)."))
     port: int = Field(ge=1, le=65535, description="Receiver's UDP port.")
     camera_id: int = Field(1, ge=0, le=255, description="The camera id byte of the packets, unless a connection "
@@ -790,8 +794,7 @@ class FreeDConnection(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, json_schema_extra=_examples(
         {"camera_id": 2}, {"host": "192.168.1.40", "port": 40000, "camera_id": 1}, {"enabled": False}))
 
-    host: str | None = Field(None, min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$", description=(
-        "Receiver's host name or IP address."))
+    host: HostName | None = Field(None, description="Receiver's host name or IP address.")
     port: int | None = Field(None, ge=1, le=65535, description="Receiver's UDP port.")
     camera_id: int = Field(1, ge=0, le=255, description="The camera id byte of the packets.")
     enabled: bool = Field(True, description="false: this connection sends no FreeD, even where the environment "

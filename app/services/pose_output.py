@@ -15,6 +15,9 @@ from app.core.geometry import Convention, OneEuroParams, Pose, PoseFilter, to_co
 from app.schemas import FilteredPoseOut, ClientPose, PoseFrame, PoseOut, Smoothing, TrackConfig
 
 assert set(PoseFrame.__args__) == {c.value for c in Convention}  # type: ignore[attr-defined]
+# A connection's `{"smoothing": {}}` is the core filter's defaults.
+assert (Smoothing().min_cutoff_hz, Smoothing().beta, Smoothing().beta_rotation) == (
+    OneEuroParams().min_cutoff_hz, OneEuroParams().beta, OneEuroParams().beta_rotation)
 
 
 def frame_pose(R: np.ndarray, t: np.ndarray, frame: PoseFrame) -> ClientPose:

@@ -48,6 +48,7 @@ from app.core.geometry import (
     predict_in_view,
     predict_regions,
     reduce_regions,
+    rotation_angle,
 )
 from app.schemas import (
     CameraModel,
@@ -188,8 +189,7 @@ class TrackState:
         gap = last.seq - before.seq if before is not None else 0
         if before is None or not 0 < gap <= self.params.max_steps:
             return last.pose
-        turn = float(np.arccos(np.clip((np.trace(last.pose.R @ before.pose.R.T) - 1) / 2, -1.0, 1.0)))
-        if turn > MAX_TURN_PER_FRAME_RAD * gap:
+        if rotation_angle(last.pose, before.pose) > MAX_TURN_PER_FRAME_RAD * gap:
             return last.pose  # a jump (a tilt changed between them), not a motion to go on with
         return extrapolate(before.pose, last.pose, (seq - last.seq) / gap)
 

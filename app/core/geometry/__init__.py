@@ -10,7 +10,7 @@ printed (docs/map-format.md).
 """
 
 from app.core.geometry.alignment import Similarity, alignment_residuals, similarity_from_points, target_origin_alignment
-from app.core.geometry.camera import Camera, IdealCanvas, Pose
+from app.core.geometry.camera import Camera, IdealCanvas, Pose, rotation_angle
 from app.core.geometry.conventions import (
     Convention,
     ConventionPose,
@@ -99,6 +99,7 @@ __all__ = [
     "predict_targets",
     "quaternion_xyzw",
     "reduce_regions",
+    "rotation_angle",
     "refine_with_focal",
     "similarity_from_points",
     "single_target_poses",

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["FOLD_FRACTION", "Camera", "IdealCanvas", "Pose"]
+__all__ = ["FOLD_FRACTION", "Camera", "IdealCanvas", "Pose", "rotation_angle"]
 
 #: The lens's usable field stops at this fraction of the radius where the distortion
 #: polynomial folds back (Camera.field_radius): at the fold the radial map's slope is
@@ -238,6 +238,22 @@ class Pose:
             "t": self.t.tolist(),
             "position": self.position.tolist(),
         }
+
+
+def rotation_angle(a: Pose, b: Pose) -> float:
+    """The angle of the rotation between two poses.
+
+    Parameters
+    ----------
+    a, b : Pose
+        The poses.
+
+    Returns
+    -------
+    float
+        The angle of ``a.R @ b.R.T``, radians, in [0, pi].
+    """
+    return float(np.arccos(np.clip((np.trace(a.R @ b.R.T) - 1) / 2, -1.0, 1.0)))
 
 
 # --------------------------------------------------------------------------------------

@@ -84,22 +84,6 @@ def planar_poses(camera: Camera, uv: np.ndarray, model: np.ndarray) -> list[Pose
     return [p for p in poses if p.t[2] > 0]
 
 
-def rotation_angle(a: Pose, b: Pose) -> float:
-    """The angle of the rotation between two poses.
-
-    Parameters
-    ----------
-    a, b : Pose
-        The poses.
-
-    Returns
-    -------
-    float
-        The angle of ``a.R @ b.R.T``, radians, in [0, pi].
-    """
-    return float(np.arccos(np.clip((np.trace(a.R @ b.R.T) - 1) / 2, -1.0, 1.0)))
-
-
 def triangulate(poses: Sequence[Pose], x: np.ndarray) -> np.ndarray:
     """One point from its views, by the DLT.
 

@@ -11,8 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from app.core.geometry import Pose, PoseUndetermined, TargetObservation, nonlinear
-from app.core.survey.cards import rotation_angle
+from app.core.geometry import Pose, PoseUndetermined, TargetObservation, nonlinear, rotation_angle
 from app.core.survey.prune import noise_variance
 from app.core.survey.state import SurveyState
 
