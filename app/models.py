@@ -165,12 +165,34 @@ class Job(Base):
     # The web process that owns the job ("host:pid"): at start a process fails only the
     # jobs of runners that are gone, not those of a sibling worker.
     runner: Mapped[str | None] = mapped_column(String(96), nullable=True)
+    # Each run of the job (a worker that died has its job run again) takes the next
+    # attempt; only the newest attempt may report progress or finish the job.
+    attempt: Mapped[int] = mapped_column(Integer, default=0)
+    # The engine's worker running the newest attempt, and when it last said it was alive:
+    # a job whose worker fell silent is failed by any web process, on any machine.
+    worker: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+
+
+class TrackConnection(Base):
+    """An open /track connection, held by the server process that serves it: the limit on
+    open connections counts these rows, so it holds across processes and machines. A
+    process renews its rows' ``seen_at``; rows of a process that died go stale and stop
+    counting."""
+
+    __tablename__ = "track_connections"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    server: Mapped[str] = mapped_column(String(96), index=True)
+    environment_id: Mapped[int] = mapped_column(ForeignKey("environments.id", ondelete="CASCADE"), index=True)
+    opened_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    seen_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
 
 
 class ApiKey(Base):

@@ -551,6 +551,11 @@ class JobOut(BaseModel):
     created_at: datetime = Field(description="When it was submitted (UTC).")
     started_at: datetime | None = Field(description="When a worker started it (UTC); null while queued.")
     finished_at: datetime | None = Field(description="When it ended (UTC); null while queued or running.")
+    attempt: int = Field(0, ge=0, description=(
+        "Which run of the job this is: 1 once started, more when a worker died and it ran again."))
+    worker: str | None = Field(None, description="The job engine's worker running (or that ran) it.")
+    heartbeat_at: datetime | None = Field(None, description=(
+        "When its worker last said it was alive (UTC); a running job silent for job_lease_s is failed."))
     # A kind without a model of its own (there is none in the service) keeps its plain
     # result rather than failing to show: left out of the schema.
     result: SurveyResult | TrainingResult | SkipJsonSchema[dict[str, Any]] | None = Field(description=(

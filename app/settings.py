@@ -67,11 +67,13 @@ class Settings(BaseSettings):
     freed_connection_receivers: bool = Field(True, description=(
         "Whether a /track connection may send FreeD packets to a host and port of its own choosing (config "
         "`freed`); false: only to its environment's FreeD output."))
-    max_track_connections: int = Field(64, ge=1, description="Open /track connections at once.")
+    max_track_connections: int = Field(64, ge=1, description=(
+        "Open /track connections at once, across every server process sharing the database."))
     track_idle_timeout_s: float = Field(30.0, gt=0, le=86400, description=(
         "A /track connection that sends no message for this long is closed (error `idle`, close code 1001), "
         "so that idle clients cannot hold every connection slot."))
-    max_queued_jobs: int = Field(20, ge=1, description="Jobs queued or running at once; more get 429.")
+    max_queued_jobs: int = Field(20, ge=1, description=(
+        "Jobs queued or running at once, across every server process sharing the database; more get 429."))
     track_threads: int = Field(2, ge=1, le=64, description="Threads processing tracking frames.")
     image_workers: int = Field(1, ge=1, le=64, description=(
         "Processes for /detect and /locate images, apart from the web process and its /track frames: those "
@@ -89,7 +91,27 @@ class Settings(BaseSettings):
         "Threads one frame's detection and pose may use inside OpenCV and BLAS. Frames of "
         "different clients already run in parallel (track_threads); 1 keeps idle BLAS "
         "threads from spinning on the cores the other frames need."))
-    max_concurrent_jobs: int = Field(1, ge=1, le=16, description="Jobs running at once.")
+    max_concurrent_jobs: int = Field(1, ge=1, le=16, description=(
+        "Jobs running at once in the embedded job cluster (its workers); with `job_scheduler`, each "
+        "`fidotrack worker` runs one job at a time and the number of workers sets it."))
+    job_scheduler: str | None = Field(None, pattern=r"^(tcp|tls)://[^\s]+:[0-9]{1,5}$", description=(
+        "Address of the job engine's scheduler (Dask distributed), e.g. `tcp://scheduler:8786`, whose "
+        "`fidotrack worker`s on any machine run surveys and training; default: a local cluster started "
+        "by `fidotrack serve`, with `max_concurrent_jobs` workers."))
+    job_heartbeat_s: float = Field(5.0, gt=0, le=300, description=(
+        "How often a running job's worker says on the job's row that it is alive."))
+    job_lease_s: float = Field(30.0, gt=0, le=3600, description=(
+        "A running job whose worker has said nothing for this long is failed (\"worker lost\"), by any "
+        "web process; more than `job_heartbeat_s` with room for a busy database."))
+    job_attempts: int = Field(2, ge=1, le=10, description=(
+        "Runs a job gets when the worker running it dies (its process killed, its machine gone): the "
+        "engine runs it again on another worker, at most this many times in all, then it fails."))
+    track_connection_lease_s: float = Field(30.0, ge=2, le=3600, description=(
+        "An open /track connection is renewed in the database this often / 3; one a dead server process "
+        "left behind stops counting against `max_track_connections` after this long."))
+    map_poll_s: float = Field(2.0, gt=0, le=3600, description=(
+        "How often an open /track connection checks whether its environment's map or classifier changed "
+        "(a survey, an alignment, on any server process) and switches to the new one."))
 
     @field_validator("database_url")
     @classmethod
