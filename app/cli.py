@@ -5,6 +5,7 @@ render simulated rooms (``synth``) and show the whole system at work (``demo``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -58,24 +59,73 @@ def _serve(args: argparse.Namespace) -> int:
     if (settings.tls_certfile is None) != (settings.tls_keyfile is None):
         print("fidotrack serve: TLS needs both FIDOTRACK_TLS_CERTFILE and FIDOTRACK_TLS_KEYFILE", file=sys.stderr)
         return 2
-    uvicorn.run(
-        "app.main:app",
-        host=args.host or settings.host,
-        port=args.port or settings.port,
-        workers=args.workers,
-        ws="websockets-sansio",  # ("websockets", the legacy implementation, is deprecated)
-        # Frames are JPEGs: deflate cannot shrink them and costs ~10 ms per 200 KB frame.
-        ws_per_message_deflate=False,
-        # The transport's bound on one message; frames under it but over max_frame_bytes
-        # get the frame_too_large error and the connection stays open.
-        ws_max_size=ws_message_limit(settings),
-        proxy_headers=True,
-        ssl_certfile=settings.tls_certfile,
-        ssl_keyfile=settings.tls_keyfile,
-        # A stop waits this long for open connections, then closes them: a browser may
-        # leave a TLS connection's closing unanswered, which asyncio waits out for 30 s.
-        timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
-    )
+    with _shared_job_cluster(settings, args.workers):
+        uvicorn.run(
+            "app.main:app",
+            host=args.host or settings.host,
+            port=args.port or settings.port,
+            workers=args.workers,
+            ws="websockets-sansio",  # ("websockets", the legacy implementation, is deprecated)
+            # Frames are JPEGs: deflate cannot shrink them and costs ~10 ms per 200 KB frame.
+            ws_per_message_deflate=False,
+            # The transport's bound on one message; frames under it but over max_frame_bytes
+            # get the frame_too_large error and the connection stays open.
+            ws_max_size=ws_message_limit(settings),
+            proxy_headers=True,
+            ssl_certfile=settings.tls_certfile,
+            ssl_keyfile=settings.tls_keyfile,
+            # A stop waits this long for open connections, then closes them: a browser may
+            # leave a TLS connection's closing unanswered, which asyncio waits out for 30 s.
+            timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
+        )
+    return 0
+
+
+@contextlib.contextmanager
+def _shared_job_cluster(settings: Settings, workers: int) -> Iterator[None]:
+    """With several server processes and no job scheduler of the deployment's own, one
+    local job cluster for them all, started here (each process would otherwise start its
+    own, and the job slots would multiply with the processes)."""
+    if workers <= 1 or settings.job_scheduler is not None:
+        yield
+        return
+    from app.db import make_engine, make_sessionmaker
+    from app.services.jobs import JobRunner
+
+    engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
+    runner = JobRunner(settings, make_sessionmaker(engine))
+    address = runner.client().scheduler.address
+    os.environ["FIDOTRACK_JOB_SCHEDULER"] = address
+    try:
+        yield
+    finally:
+        os.environ.pop("FIDOTRACK_JOB_SCHEDULER", None)
+        runner.shutdown()  # fails the jobs it still held: they die with its workers
+        engine.dispose()
+
+
+def _scheduler(args: argparse.Namespace) -> int:
+    from app.services.jobs.cluster import run_scheduler
+
+    settings = _settings("scheduler")
+    if settings is None:
+        return 2
+    run_scheduler(settings, args.host, args.port)
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from app.services.jobs.cluster import run_workers
+
+    settings = _settings("worker")
+    if settings is None:
+        return 2
+    scheduler = args.scheduler or settings.job_scheduler
+    if scheduler is None:
+        print("fidotrack worker: give the scheduler's address (--scheduler or FIDOTRACK_JOB_SCHEDULER)",
+              file=sys.stderr)
+        return 2
+    run_workers(scheduler, args.nworkers, args.nthreads)
     return 0
 
 
@@ -403,6 +453,19 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, help="default: FIDOTRACK_PORT or 8000")
     serve.add_argument("--workers", type=int, default=1, help="server processes (default: %(default)s)")
     serve.set_defaults(run=_serve)
+
+    scheduler = commands.add_parser("scheduler", help="run the job engine's scheduler (for workers on other machines)")
+    scheduler.add_argument("--host", default="0.0.0.0", help="address to listen on (default: %(default)s)")
+    scheduler.add_argument("--port", type=int, default=8786, help="port to listen on (default: %(default)s)")
+    scheduler.set_defaults(run=_scheduler)
+
+    worker = commands.add_parser("worker", help="run job workers (surveys, training) for a job scheduler")
+    worker.add_argument("--scheduler", help="the scheduler, tcp://host:port (default: FIDOTRACK_JOB_SCHEDULER)")
+    worker.add_argument("--nworkers", type=int, default=1,
+                        help="worker processes; each runs one job at a time and pieces of others' "
+                             "(default: %(default)s)")
+    worker.add_argument("--nthreads", type=int, default=1, help="threads per worker process (default: %(default)s)")
+    worker.set_defaults(run=_worker)
 
     cards = commands.add_parser("markers", help="write printable marker cards as an A4 PDF")
     cards.add_argument("--ids", default="0-11", help='ids, e.g. "0-11" or "0,3,5-7"')

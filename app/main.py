@@ -62,9 +62,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     sessions = make_sessionmaker(engine)
     with sessions() as session:
         classifiers.install_default(session)
-    runner = JobRunner(settings.resolved_database_url, settings.sqlite_busy_timeout_ms, settings.data_dir,
-                       sessions, settings.max_concurrent_jobs)
-    runner.start()
+    runner = JobRunner(settings, sessions)
+    await anyio.to_thread.run_sync(runner.start)
     app.state.engine = engine
     app.state.sessionmaker = sessions
     app.state.jobs = runner
@@ -82,7 +81,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
     finally:
         app.state.image_workers.shutdown()
-        runner.shutdown()
+        await anyio.to_thread.run_sync(runner.shutdown)
         engine.dispose()
 
 

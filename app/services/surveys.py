@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 from sqlalchemy.orm import Session
 
-from app.core.detection import Detector
+from app.core.detection import DetectedTarget, Detector
 from app.core.geometry import Camera
 from app.core.imagecodec import PNG_MAGIC, decode_gray
 from app.core.features import FeatureTracker, exclusion_mask
@@ -243,30 +243,73 @@ def _chosen(total: int, wanted: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, total - 1, wanted)).astype(int))
 
 
-def read_frames(params: SurveyParams) -> Iterator[tuple[int, int, np.ndarray]]:
-    """(position, count, greyscale frame) of the frames the survey uses."""
+def _video_total(params: SurveyParams, capture: cv2.VideoCapture) -> int:
+    return int(params.video_frames or 0) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+
+
+def frame_count(params: SurveyParams) -> int:
+    """How many frames the survey uses."""
     if params.source == "video":
         assert params.video is not None
         capture = cv2.VideoCapture(params.video, cv2.CAP_FFMPEG)
         try:
-            total = int(params.video_frames or 0) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-            chosen = _chosen(total, params.max_frames)
-            wanted = set(chosen.tolist())
-            index = position = 0
-            while position < len(chosen) and capture.grab():
+            return len(_chosen(_video_total(params, capture), params.max_frames))
+        finally:
+            capture.release()
+    return len(_chosen(len(list(Path(params.upload_dir).glob("image_*"))), params.max_frames))
+
+
+def read_frames(params: SurveyParams, positions: range | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
+    """(position, count, greyscale frame) of the frames the survey uses, or of those at
+    `positions` among them (a video is entered at the first one's frame)."""
+    if params.source == "video":
+        assert params.video is not None
+        capture = cv2.VideoCapture(params.video, cv2.CAP_FFMPEG)
+        try:
+            chosen = _chosen(_video_total(params, capture), params.max_frames)
+            positions = positions if positions is not None else range(len(chosen))
+            if not positions:
+                return
+            wanted = {int(chosen[p]): p for p in positions}
+            index = int(chosen[positions[0]])
+            if index > 0:
+                # OpenCV's FFmpeg reader seeks to the keyframe before and decodes up to
+                # the frame asked for, so the pieces of a survey read the frames a
+                # whole read would.
+                capture.set(cv2.CAP_PROP_POS_FRAMES, index)
+            last = int(chosen[positions[-1]])
+            while index <= last and capture.grab():
                 if index in wanted:
                     ok, frame = capture.retrieve()
                     if ok:
-                        yield position, len(chosen), cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                    position += 1
+                        yield wanted[index], len(chosen), cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
                 index += 1
         finally:
             capture.release()
     else:
         files = sorted(Path(params.upload_dir).glob("image_*"))
         chosen = _chosen(len(files), params.max_frames)
-        for position, k in enumerate(chosen.tolist()):
-            yield position, len(chosen), decode_gray(files[k].read_bytes(), params.max_pixels)
+        for position in positions if positions is not None else range(len(chosen)):
+            yield position, len(chosen), decode_gray(files[int(chosen[position])].read_bytes(), params.max_pixels)
+
+
+#: Frames in each piece of a survey's detection that a worker of the job engine takes:
+#: about a second of work, so that the engine's cost per piece (a few ms) stays under 1 %.
+FRAMES_PER_PIECE = 20
+
+
+@dataclass(frozen=True)
+class FramePiece:
+    """Consecutive frames of a survey, detected by one worker."""
+
+    params: SurveyParams
+    positions: range
+
+
+def detect_piece(detector: Detector, piece: FramePiece) -> list[tuple[int, list[DetectedTarget]]]:
+    """(position, targets) of each frame of `piece` that could be read, in order (on a
+    worker of the job engine)."""
+    return [(position, detector.detect(gray).targets) for position, _, gray in read_frames(piece.params, piece.positions)]
 
 
 @job_handler(JobKind.SURVEY, SurveyParams)
@@ -276,18 +319,29 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
         # Fitted disc centres: the survey averages many views of each disc, and the
         # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
         detector = Detector.for_survey(classifiers.load(session, params.classifier_id), params.family)
-    detections = []
-    # The scene's own points, tracked through the frames the survey uses (the cards left
-    # out: their discs are tracked as discs).
-    tracker = FeatureTracker() if params.feature_tracks else None
-    stage = "detecting targets and tracking features" if tracker is not None else "detecting targets"
-    context.progress(stage, 0.0)
-    for position, count, gray in read_frames(params):
-        targets = detector.detect(gray).targets
-        detections.append(targets)
-        if tracker is not None:
-            tracker.add(gray, exclusion_mask(gray.shape, np.array([t.discs for t in targets]).reshape(-1, 4, 2)))
-        context.progress(stage, 0.5 * (position + 1) / count, f"frame {position + 1} of {count}")
+    count = frame_count(params)
+    # The scene's own points are tracked frame after frame, after detection (the cards
+    # left out: their discs are tracked as discs).
+    detecting_share = 0.35 if params.feature_tracks else 0.5
+    context.progress("detecting targets", 0.0)
+
+    def detected(finished: int, total: int) -> None:
+        frames = min(finished * FRAMES_PER_PIECE, count)
+        context.progress("detecting targets", detecting_share * finished / total, f"frame {frames} of {count}")
+
+    pieces = [FramePiece(params, range(a, min(a + FRAMES_PER_PIECE, count))) for a in range(0, count, FRAMES_PER_PIECE)]
+    by_position = dict(found for piece in context.fan_out(detect_piece, detector, pieces, detected) for found in piece)
+    detections = [by_position[position] for position in sorted(by_position)]
+    tracker = None
+    if params.feature_tracks:
+        tracker = FeatureTracker()
+        for position, _, gray in read_frames(params):
+            if position not in by_position:
+                continue  # (its frame could not be read for detection either)
+            discs = np.array([t.discs for t in by_position[position]]).reshape(-1, 4, 2)
+            tracker.add(gray, exclusion_mask(gray.shape, discs))
+            context.progress("tracking features", detecting_share + (0.5 - detecting_share) * (position + 1) / count,
+                             f"frame {position + 1} of {count}")
     found = sum(len(d) for d in detections)
     if found == 0:
         raise SurveyError(f"no target was found in any of the {len(detections)} frames: "

@@ -3,6 +3,7 @@ registered as the service's own are."""
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -57,3 +58,22 @@ def store_map(params: StoreMapParams, context: JobContext) -> JobResult:
         environments.stage_map(session, context.environment_id, MapDocument.model_validate(params.document),
                                MapChange.SURVEY)
     return {"stored": True}
+
+
+class SpreadParams(BaseModel):
+    pieces: int = 8
+    sleep: float = 0.3
+
+
+def _piece(sleep: float, piece: int) -> tuple[int, int]:
+    time.sleep(sleep)
+    return piece, os.getpid()
+
+
+@job_handler("spread", SpreadParams)
+def spread(params: SpreadParams, context: JobContext) -> JobResult:
+    """Fan `pieces` pieces of work out over the engine's workers; which process ran each."""
+    done = context.fan_out(_piece, params.sleep, list(range(params.pieces)),
+                           lambda finished, total: context.progress("spreading", finished / total))
+    return {"pieces": [piece for piece, _ in done], "pids": sorted({pid for _, pid in done}),
+            "job_pid": os.getpid()}

@@ -1,21 +1,25 @@
-"""Long-running jobs (surveys, classifier training) in worker processes.
+"""Long-running jobs (surveys, classifier training) on the job engine, Dask distributed.
 
-A job is a row in ``jobs`` (`store`); the web process only creates and reads rows. The
-`runner` of the web process starts each job in its own spawned process (vision work
-holds the CPU for minutes and must not stall the event loop or the GIL of the web
-process), at most ``max_concurrent_jobs`` at once, the rest waiting in a queue. In the
-`worker`, the job's handler (`registry`) reports its stage and progress through its
-`JobContext`, which stops it when the row says it was cancelled.
+A job is a row in ``jobs`` (`store`), and the row is its truth. The web process's
+`runner` stores the row and hands the job to the engine's scheduler (`cluster`: a local
+cluster by default, or a scheduler with workers on any machines); vision work holds a
+core for minutes, so it never runs in the web process. On a worker, the task (`worker`)
+claims the job's next attempt, keeps a heartbeat on the row, and runs the job's handler
+(`registry`), which reports its stage and progress and fans work out over every worker
+through its `JobContext`; the context stops it when the row says it was cancelled or a
+newer attempt took over. Each web process fails the jobs the engine lost: a worker gone
+silent, a scheduler gone.
 """
 
 from app.services.jobs.context import Cancelled, JobContext
 from app.services.jobs.registry import JobHandler, JobKind, JobResult, handler_for, job_handler
 from app.services.jobs.runner import JobRunner
-from app.services.jobs.store import ACTIVE, cancel, create, get, job_out, new_job_id, uploads_dir
+from app.services.jobs.store import ACTIVE, Claim, cancel, create, get, job_out, new_job_id, uploads_dir
 
 __all__ = [
     "ACTIVE",
     "Cancelled",
+    "Claim",
     "JobContext",
     "JobHandler",
     "JobKind",

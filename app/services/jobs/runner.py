@@ -1,106 +1,183 @@
-"""The web process's side of jobs: the queue, the worker processes it spawns, at most
-``max_concurrent`` at a time, and the recovery of jobs a dead server left behind."""
+"""The web process's side of jobs: submit them to the job engine, and fail those the engine
+lost (a worker gone silent, a scheduler gone) rather than leave them queued or running."""
 
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import queue
 import shutil
+import socket
 import threading
-from pathlib import Path
+from collections.abc import Iterable
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Job
+from app.services.errors import Busy
 from app.services.jobs import store
-from app.services.jobs.registry import RegisteredHandler, handler_for
-from app.services.jobs.worker import WorkerSetup, run_job
+from app.services.jobs.cluster import JOB_RESOURCE, local_cluster
+from app.services.jobs.registry import handler_for
+from app.services.jobs.worker import run_job
+from app.settings import Settings
 
 log = logging.getLogger("app.jobs")
 
+#: A job row younger than this may not have reached the engine yet (it is stored first).
+SUBMIT_GRACE_S = 10.0
+#: How long a web process waits for an external scheduler before saying it cannot be reached.
+CONNECT_TIMEOUT_S = 10.0
+
+
+def _known_keys(keys: list[str], dask_scheduler) -> list[str]:  # type: ignore[no-untyped-def]
+    """(On the scheduler.) Which of `keys` it holds to run or running (not given up on)."""
+    return [key for key in keys if key in dask_scheduler.tasks and dask_scheduler.tasks[key].state != "erred"]
+
+
+def engine_reachable(address: str, timeout: float = 2.0) -> bool:
+    """Whether something listens at a scheduler's address (``tcp://host:port``)."""
+    parts = urlsplit(address)
+    if parts.scheme not in ("tcp", "tls") or parts.hostname is None or parts.port is None:
+        return False
+    try:
+        with socket.create_connection((parts.hostname, parts.port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def task_key(job_id: str) -> str:
+    return f"job-{job_id}"
+
 
 class JobRunner:
-    """Runs queued jobs in spawned worker processes, ``max_concurrent`` at a time."""
+    """Submits jobs to the job engine (`settings.job_scheduler`, or a local cluster this
+    process starts with its first job) and reaps the jobs the engine lost."""
 
-    def __init__(self, database_url: str, busy_timeout_ms: int, data_dir: Path,
-                 sessions: sessionmaker[Session], max_concurrent: int = 1) -> None:
-        self._setup = WorkerSetup(database_url, busy_timeout_ms, data_dir)
+    def __init__(self, settings: Settings, sessions: sessionmaker[Session]) -> None:
+        self.settings = settings
         self._sessions = sessions
-        self._data_dir = data_dir
-        self._queue: queue.Queue[tuple[str, RegisteredHandler] | None] = queue.Queue()
-        self._processes: dict[str, multiprocessing.process.BaseProcess] = {}
         self._lock = threading.Lock()
-        self._threads = [
-            threading.Thread(target=self._dispatch, name=f"job-dispatch-{i}", daemon=True)
-            for i in range(max(1, max_concurrent))
-        ]
-        self._spawn = multiprocessing.get_context("spawn")
+        self._cluster = None  # the local cluster, when this process owns one
+        self._client = None
+        self._stop = threading.Event()
+        self._reaper = threading.Thread(target=self._reap_every, name="job-reaper", daemon=True)
+
+    @property
+    def owns_engine(self) -> bool:
+        return self.settings.job_scheduler is None
 
     def start(self) -> None:
-        """Fail the jobs a dead server left queued or running, remove their uploads, and
-        start dispatching."""
-        with self._sessions() as session:
-            failed = store.fail_interrupted(session, "the server stopped while this job was queued or running")
-        if failed:
-            log.warning("marked %d interrupted job(s) failed", failed)
-        # Uploads of jobs that will never run again; a live sibling's stay.
-        uploads = self._data_dir / "uploads"
+        """Fail the jobs a dead engine left queued or running, remove uploads of jobs that
+        will never run, and start reaping."""
+        self.reap()
+        uploads = self.settings.data_dir / "uploads"
         if uploads.is_dir():
             with self._sessions() as session:
                 active = store.active_ids(session)
             for folder in uploads.iterdir():
                 if folder.name not in active:
                     shutil.rmtree(folder, ignore_errors=True)
-        for thread in self._threads:
-            thread.start()
+        self._reaper.start()
+
+    def client(self):  # type: ignore[no-untyped-def]  (distributed.Client)
+        """The engine's client, connecting (or starting the local cluster) on first use;
+        Busy (503) when the scheduler cannot be reached."""
+        with self._lock:
+            if self._client is None:
+                from distributed import Client
+
+                try:
+                    if self.owns_engine:
+                        self._cluster = local_cluster(self.settings)
+                        self._client = Client(self._cluster, set_as_default=False)
+                        log.info("local job cluster at %s", self._cluster.scheduler_address)
+                    else:
+                        self._client = Client(self.settings.job_scheduler, timeout=CONNECT_TIMEOUT_S,
+                                              set_as_default=False)
+                except (OSError, TimeoutError) as exc:
+                    raise Busy(f"the job engine at {self.settings.job_scheduler} cannot be reached ({exc}); "
+                               "try again later") from None
+            return self._client
+
+    @property
+    def address(self) -> str | None:
+        """The scheduler's address once connected (the local cluster's once started)."""
+        with self._lock:
+            return None if self._client is None else self._client.scheduler.address
 
     def submit(self, session: Session, kind: str, params: BaseModel, *, environment_id: int | None = None,
                job_id: str | None = None, max_active: int | None = None) -> Job:
         """Store a job of `kind` (a registered kind; `params` of its handler's model) and
-        queue it. With `max_active`, TooMany (429) when that many jobs are queued or running."""
+        hand it to the engine. With `max_active`, TooMany (429) when that many jobs are
+        queued or running."""
+        from distributed import fire_and_forget
+
         handler = handler_for(kind)
         if not isinstance(params, handler.params):
             raise TypeError(f"{kind} jobs take {handler.params.__name__}, not {type(params).__name__}")
-        job = store.create(session, kind, params, environment_id=environment_id, job_id=job_id,
-                           max_active=max_active)
-        self._queue.put((job.id, handler))
+        client = self.client()
+        job = store.create(session, kind, params, engine=client.scheduler.address, environment_id=environment_id,
+                           job_id=job_id, max_active=max_active)
+        # The row, not this future, is the job's truth: the task runs whether or not this
+        # process is still there to hear of it.
+        fire_and_forget(client.submit(run_job, job.id, handler, key=task_key(job.id), pure=False,
+                                      resources={JOB_RESOURCE: 1}))
         return job
 
-    def _dispatch(self) -> None:
-        while (item := self._queue.get()) is not None:
-            job_id, handler = item
-            process = self._spawn.Process(target=run_job, args=(self._setup, job_id, handler), name=f"job-{job_id}")
-            with self._lock:
-                self._processes[job_id] = process
-            process.start()
-            process.join()
-            with self._lock:
-                self._processes.pop(job_id, None)
-            if process.exitcode not in (0, None):
-                self._fail_if_active(job_id, f"the job's worker process died (exit code {process.exitcode})")
-
-    def _fail_if_active(self, job_id: str, reason: str) -> None:
+    def reap(self) -> list[str]:
+        """Fail the jobs the engine lost; their ids. A running job whose worker fell silent
+        for `job_lease_s`; a queued or running job its scheduler no longer holds (this
+        process's), or whose scheduler is gone (another's, unreachable)."""
         with self._sessions() as session:
-            store.fail(session, [job_id], reason)
-        shutil.rmtree(store.uploads_dir(self._data_dir, job_id), ignore_errors=True)
+            lost = store.fail_silent(session, self.settings.job_lease_s)
+            by_engine = store.active_by_engine(session, SUBMIT_GRACE_S)
+        own = self.address
+        gone: list[str] = []
+        for engine, job_ids in by_engine.items():
+            if engine == own:
+                known = set(self._client.run_on_scheduler(_known_keys, [task_key(j) for j in job_ids]))
+                gone += [j for j in job_ids if task_key(j) not in known]
+            elif not engine_reachable(engine):
+                gone += job_ids
+        if gone:
+            with self._sessions() as session:
+                store.fail(session, gone, "the job engine this job was given to is gone (its scheduler stopped "
+                           "or restarted); submit it again", stage="interrupted")
+        self._remove_uploads(lost + gone)
+        if lost or gone:
+            log.warning("failed %d job(s) the engine lost", len(lost) + len(gone))
+        return lost + gone
+
+    def _reap_every(self) -> None:
+        interval = min(self.settings.job_lease_s / 3, 10.0)
+        while not self._stop.wait(interval):
+            try:
+                self.reap()
+            except Exception:  # noqa: BLE001  (a busy database or scheduler: next round)
+                log.warning("job reaper round failed", exc_info=True)
+
+    def _remove_uploads(self, job_ids: Iterable[str]) -> None:
+        for job_id in job_ids:
+            shutil.rmtree(store.uploads_dir(self.settings.data_dir, job_id), ignore_errors=True)
 
     def shutdown(self) -> None:
-        """Stop dispatching; jobs still running are stopped and marked failed (queued ones
-        are failed at the next start)."""
-        while True:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                break
-        for _ in self._threads:
-            self._queue.put(None)
+        """Stop reaping and disconnect. A local cluster this process owns stops with it:
+        its queued and running jobs are failed, saying so."""
+        self._stop.set()
+        if self._reaper.is_alive():
+            self._reaper.join(15)
         with self._lock:
-            running = dict(self._processes)
-        for job_id, process in running.items():
-            process.terminate()
-            process.join(10)
-            self._fail_if_active(job_id, "the server shut down while this job was running")
-        for thread in self._threads:
-            thread.join(15)
+            client, cluster, self._client, self._cluster = self._client, self._cluster, None, None
+        if client is None:
+            return
+        address = client.scheduler.address
+        if cluster is not None:
+            with self._sessions() as session:
+                ids = store.active_by_engine(session, 0.0).get(address, [])
+                store.fail(session, ids, "the server shut down while this job was queued or running",
+                           stage="interrupted")
+            self._remove_uploads(ids)
+        client.close()
+        if cluster is not None:
+            cluster.close()

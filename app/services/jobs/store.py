@@ -11,13 +11,14 @@ import socket
 import uuid
 from collections.abc import Collection, Iterable
 from pathlib import Path
-from typing import Any
+from datetime import timedelta
+from typing import Any, NamedTuple
 
 from pydantic import BaseModel
-from sqlalchemy import func, select, update
+from sqlalchemy import Select, func, select, update
 from sqlalchemy.orm import Session
 
-from app.db import utcnow
+from app.db import lock_for_writing, utcnow
 from app.models import Job
 from app.schemas import JobOut, JobStatus
 from app.services.errors import TooMany, can_match, get_or_404
@@ -43,21 +44,25 @@ def uploads_dir(data_dir: Path, job_id: str) -> Path:
 
 
 def runner_id() -> str:
-    """This web process, as recorded on the jobs it owns."""
+    """This process, as "host:pid"."""
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def create(session: Session, kind: str, params: BaseModel, *, environment_id: int | None = None,
+def create(session: Session, kind: str, params: BaseModel, *, engine: str, environment_id: int | None = None,
            job_id: str | None = None, max_active: int | None = None) -> Job:
-    """Store a queued job owned by this process. With `max_active`, TooMany (429) when that
-    many jobs are already queued or running."""
+    """Store a queued job, to be run by the job engine whose scheduler is at `engine`. With
+    `max_active`, TooMany (429) when that many jobs are already queued or running, counted
+    and inserted under one lock so that web processes submitting at once cannot overshoot."""
     if max_active is not None:
+        session.commit()  # the caller's reads end here: SQLite's write lock opens a transaction
+        lock_for_writing(session, "jobs")
         active = count_active(session)
         if active >= max_active:
+            session.rollback()
             raise TooMany(f"{active} jobs are queued or running (the limit is {max_active}); try again later")
     job = Job(id=job_id or new_job_id(), kind=kind, params=params.model_dump(mode="json"),
               environment_id=environment_id, status=JobStatus.QUEUED.value, progress=0.0,
-              stage=JobStatus.QUEUED.value, message="", runner=runner_id())
+              stage=JobStatus.QUEUED.value, message="", runner=engine)
     session.add(job)
     session.commit()
     return job
@@ -108,76 +113,116 @@ def cancel(session: Session, job_id: str) -> Job:
     return job
 
 
-def start(session: Session, job_id: str) -> Job | None:
-    """Mark a queued job running; None when it is no longer queued (cancelled before it
-    started)."""
-    job = session.get(Job, job_id)
-    if job is None or job.status != JobStatus.QUEUED:
+class Claim(NamedTuple):
+    """A worker's hold on a job: which run of it this is."""
+
+    job_id: str
+    attempt: int
+
+
+def claim(session: Session, job_id: str, worker: str, max_attempts: int) -> Claim | None:
+    """Start the next attempt of a job on `worker`: a queued job's first, or, when the
+    engine runs a job again because the worker of its last attempt died, the next one
+    (the job is failed instead once it has had `max_attempts`). None when the job is no
+    longer to be run (cancelled, finished, failed). Earlier attempts, should one still be
+    alive, stop at their next report: only the newest attempt may report or finish."""
+    lock_for_writing(session, "jobs")
+    job = session.get(Job, job_id, with_for_update=True, populate_existing=True)
+    if job is None or job.status not in ACTIVE:
+        session.rollback()
         return None
-    job.status, job.stage, job.started_at = JobStatus.RUNNING.value, "starting", utcnow()
+    if job.status == JobStatus.RUNNING and job.attempt >= max_attempts:
+        reason = (f"the worker running this job died ({job.worker}) and it had run {job.attempt} time(s), "
+                  f"the most it may (job_attempts)")
+        job.status, job.stage, job.error, job.message = JobStatus.FAILED.value, "worker lost", reason, reason
+        job.finished_at = utcnow()
+        session.commit()
+        return None
+    job.attempt += 1
+    job.status, job.stage, job.worker = JobStatus.RUNNING.value, "starting", worker[:128]
+    job.heartbeat_at = utcnow()
+    job.started_at = job.started_at or job.heartbeat_at
+    if job.attempt > 1:
+        job.progress, job.message = 0.0, f"run again (attempt {job.attempt}): the worker of the last one died"
     session.commit()
-    return job
+    return Claim(job_id, job.attempt)
 
 
-def report_progress(session: Session, job_id: str, stage: str, fraction: float, message: str) -> bool:
+def _current(claim: Claim) -> Any:
+    """Rows of `claim`'s job that are still running its attempt."""
+    return (Job.id == claim.job_id) & (Job.attempt == claim.attempt) & (Job.status == JobStatus.RUNNING.value)
+
+
+def heartbeat(session: Session, claim: Claim) -> bool:
+    """Say the job's worker is alive; False when the attempt is no longer the job's
+    running one (cancelled, failed as lost, or superseded)."""
+    result = session.execute(update(Job).where(_current(claim)).values(heartbeat_at=utcnow()))
+    session.commit()
+    return bool(result.rowcount)  # type: ignore[attr-defined]
+
+
+def report_progress(session: Session, claim: Claim, stage: str, fraction: float, message: str) -> bool:
     """Store a running job's stage and progress; False (nothing stored) when the job is
-    no longer running."""
-    if session.scalar(select(Job.status).where(Job.id == job_id)) != JobStatus.RUNNING:
-        return False
-    session.execute(
+    no longer running this attempt."""
+    result = session.execute(
         update(Job)
-        .where(Job.id == job_id)
-        .values(stage=stage[:64], progress=min(max(float(fraction), 0.0), 1.0), message=message)
+        .where(_current(claim))
+        .values(stage=stage[:64], progress=min(max(float(fraction), 0.0), 1.0), message=message,
+                heartbeat_at=utcnow())
     )
     session.commit()
-    return True
+    return bool(result.rowcount)  # type: ignore[attr-defined]
 
 
-def finish(session: Session, job_id: str, result: dict[str, Any]) -> bool:
+def finish(session: Session, claim: Claim, result: dict[str, Any]) -> bool:
     """Mark a running job succeeded with `result`, locking its row; the caller commits.
-    False (nothing changed) when the job is no longer running."""
-    job = session.get(Job, job_id, with_for_update=True)
-    if job is None or job.status != JobStatus.RUNNING:
+    False (nothing changed) when the job is no longer running this attempt."""
+    job = session.get(Job, claim.job_id, with_for_update=True)
+    if job is None or job.status != JobStatus.RUNNING or job.attempt != claim.attempt:
         return False
     job.status, job.stage, job.progress = JobStatus.SUCCEEDED.value, "done", 1.0
     job.result, job.finished_at, job.message = dict(result), utcnow(), "done"
     return True
 
 
+def status_of(job_id: str) -> Select[tuple[str]]:
+    """The query of a job's status."""
+    return select(Job.status).where(Job.id == job_id)
+
+
 def fail(session: Session, job_ids: Iterable[str], reason: str, *, stage: str = "failed",
-         statuses: Collection[JobStatus] = ACTIVE) -> int:
-    """Mark those of `job_ids` that are in `statuses` failed, saying why; how many were."""
+         statuses: Collection[JobStatus] = ACTIVE, attempt: int | None = None) -> int:
+    """Mark those of `job_ids` that are in `statuses` (and at `attempt`, when given) failed,
+    saying why; how many were."""
     result = session.execute(
         update(Job)
-        .where(Job.id.in_(list(job_ids)), Job.status.in_(statuses))
+        .where(Job.id.in_(list(job_ids)), Job.status.in_(statuses),
+               *([Job.attempt == attempt] if attempt is not None else []))
         .values(status=JobStatus.FAILED.value, stage=stage, error=reason, message=reason, finished_at=utcnow())
     )
     session.commit()
     return int(result.rowcount or 0)  # type: ignore[attr-defined]
 
 
-def fail_interrupted(session: Session, reason: str) -> int:
-    """Fail the jobs left queued or running by a web process that died, rather than leave
-    them hanging. Jobs of a sibling process on this host that is still alive are left
-    alone; a job owned by another host cannot be checked from here and is failed only
-    when it has no owner recorded."""
-    host = socket.gethostname()
-    me = runner_id()
-    orphans = []
-    for job_id, runner in session.execute(select(Job.id, Job.runner).where(Job.status.in_(ACTIVE))):
-        owner_host, _, pid = (runner or "").rpartition(":")
-        if runner is None or runner == me or (owner_host == host and not (pid.isdigit() and _process_alive(int(pid)))):
-            orphans.append(job_id)
-    if not orphans:
-        return 0
-    return fail(session, orphans, reason, stage="interrupted")
+def fail_silent(session: Session, lease_s: float) -> list[str]:
+    """Fail the running jobs whose worker has said nothing for `lease_s` (its process hung,
+    its machine gone); their ids."""
+    cutoff = utcnow() - timedelta(seconds=lease_s)
+    silent = list(session.scalars(select(Job.id).where(
+        Job.status == JobStatus.RUNNING.value, func.coalesce(Job.heartbeat_at, Job.started_at) < cutoff)))
+    if not silent:
+        return []
+    fail(session, silent, f"the worker running this job went silent for over {lease_s:g} s (worker lost)",
+         stage="worker lost", statuses=(JobStatus.RUNNING,))
+    return silent
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+def active_by_engine(session: Session, older_than_s: float) -> dict[str, list[str]]:
+    """Ids of the jobs queued or running, created more than `older_than_s` ago, by the
+    engine (scheduler address) they were submitted to."""
+    cutoff = utcnow() - timedelta(seconds=older_than_s)
+    found: dict[str, list[str]] = {}
+    for job_id, engine in session.execute(
+            select(Job.id, Job.runner).where(Job.status.in_(ACTIVE), Job.created_at < cutoff)):
+        found.setdefault(engine or "", []).append(job_id)
+    return found

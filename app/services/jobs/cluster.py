@@ -1,0 +1,174 @@
+"""The job engine: Dask distributed, on a local cluster that `fidotrack serve` starts
+itself (the embedded default) or on a scheduler and workers of their own, on any machines
+(`fidotrack scheduler`, `fidotrack worker`).
+
+Every worker process reads its settings from its own ``FIDOTRACK_*`` environment (the
+local cluster's workers get the web process's). A job runs as one task holding one
+``job`` resource: each worker process has one, so each runs at most one job at a time,
+while the pieces a job fans out (`map_on_workers`) need none and run on every worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import cache
+from typing import TypeVar
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.settings import Settings
+
+S = TypeVar("S")
+I = TypeVar("I")  # noqa: E741
+R = TypeVar("R")
+
+#: The resource a job task holds: one per worker process.
+JOB_RESOURCE = "job"
+#: The scheduler's port when `fidotrack scheduler` is not told another.
+DEFAULT_SCHEDULER_PORT = 8786
+#: Settings the local cluster's workers take from the web process (through their environment).
+_WORKER_SETTINGS = ("data_dir", "sqlite_busy_timeout_ms", "log_format", "log_level", "job_heartbeat_s",
+                    "job_attempts", "max_image_pixels")
+
+log = logging.getLogger("app.jobs")
+
+
+def engine_config(settings: Settings) -> dict[str, object]:
+    """Dask settings of a scheduler that runs fidotrack's jobs. A job whose worker died is
+    run again; the job's row bounds the runs (`store.claim` fails the job, saying why, at
+    the run after its last attempt), so the engine gives up one run later than that."""
+    return {
+        "distributed.scheduler.allowed-failures": settings.job_attempts,
+        # Idle workers keep their processes: a survey's pieces start on warm workers.
+        "distributed.scheduler.idle-timeout": None,
+    }
+
+
+def worker_environment(settings: Settings) -> dict[str, str]:
+    """The ``FIDOTRACK_*`` variables that give a worker process the web process's settings."""
+    env = {f"FIDOTRACK_{name.upper()}": str(getattr(settings, name)) for name in _WORKER_SETTINGS}
+    env["FIDOTRACK_DATABASE_URL"] = settings.resolved_database_url
+    env["FIDOTRACK_DATA_DIR"] = str(settings.data_dir.resolve())
+    return env
+
+
+def local_cluster(settings: Settings):  # type: ignore[no-untyped-def]  (distributed.SpecCluster)
+    """The embedded engine: a scheduler on 127.0.0.1 and one single-threaded worker process
+    per core (at least `max_concurrent_jobs`); the first `max_concurrent_jobs` take jobs,
+    all take a job's pieces."""
+    import dask
+    from distributed import Nanny, Scheduler, SpecCluster
+
+    n_workers = max(os.cpu_count() or 1, settings.max_concurrent_jobs)
+    env = worker_environment(settings)
+    workers = {
+        f"local-{k}": {"cls": Nanny, "options": {
+            "nthreads": 1, "env": env, "dashboard": False,
+            "resources": {JOB_RESOURCE: 1} if k < settings.max_concurrent_jobs else {},
+        }}
+        for k in range(n_workers)
+    }
+    # (Its HTTP endpoints, health and metrics, on a free port of the loopback.)
+    scheduler = {"cls": Scheduler, "options": {"host": "127.0.0.1", "port": 0, "dashboard": False,
+                                               "dashboard_address": "127.0.0.1:0"}}
+    # The scheduler runs in this process: its INFO lines (every client, every worker) would
+    # drown the service's own.
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+    with dask.config.set(engine_config(settings)):
+        return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.WARNING)
+
+
+# --- on a worker ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WorkerState:
+    """A worker process's settings and database, made once per process."""
+
+    settings: Settings
+    sessions: sessionmaker[Session]
+
+
+@cache
+def worker_state() -> WorkerState:
+    from app import logs
+    from app.db import make_engine, make_sessionmaker
+
+    settings = Settings()
+    logs.configure(settings.log_format, settings.log_level)
+    engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
+    return WorkerState(settings, make_sessionmaker(engine))
+
+
+def on_worker() -> bool:
+    """Whether this code runs in a task of the job engine."""
+    from distributed import get_worker
+
+    try:
+        get_worker()
+    except ValueError:
+        return False
+    return True
+
+
+def map_on_workers(function: Callable[[S, I], R], shared: S, items: Sequence[I],
+                   done: Callable[[int, int], None], job_id: str) -> list[R]:
+    """``[function(shared, item) for item in items]`` over every worker of the engine (see
+    `JobContext.fan_out`); in this process when it is not a worker's."""
+    total = len(items)
+    if total <= 1 or not on_worker():
+        results = []
+        for finished, item in enumerate(items, 1):
+            results.append(function(shared, item))
+            done(finished, total)
+        return results
+    from distributed import as_completed, worker_client
+
+    # Leaves the worker's thread to the pieces while this task waits (it keeps its job slot).
+    with worker_client() as client:
+        sent = client.scatter(shared, broadcast=True, hash=False)
+        run = uuid.uuid4().hex[:8]
+        futures = client.map(function, [sent] * total, list(items), pure=False,
+                             key=[f"{job_id}-{run}-part-{k}" for k in range(total)])
+        index = {future.key: k for k, future in enumerate(futures)}
+        results: list[R | None] = [None] * total
+        try:
+            for finished, future in enumerate(as_completed(futures), 1):
+                results[index[future.key]] = future.result()
+                done(finished, total)
+        finally:
+            client.cancel(futures)  # those not run yet when `done` stopped the job
+    return results  # type: ignore[return-value]
+
+
+# --- the commands -----------------------------------------------------------------------------
+
+
+def run_scheduler(settings: Settings, host: str, port: int) -> None:
+    """Run the engine's scheduler until interrupted (`fidotrack scheduler`)."""
+    import asyncio
+
+    import dask
+    from distributed import Scheduler
+
+    async def serve() -> None:
+        async with Scheduler(host=host, port=port, dashboard=False) as scheduler:
+            log.info("job scheduler at %s", scheduler.address)
+            await scheduler.finished()
+
+    with dask.config.set(engine_config(settings)):
+        asyncio.run(serve())
+
+
+def run_workers(scheduler: str, n_workers: int, nthreads: int) -> None:
+    """Run `n_workers` worker processes for `scheduler` until interrupted (`fidotrack
+    worker`), each taking one job at a time; distributed's own worker command does the
+    supervising (restarts, signals)."""
+    from distributed.cli.dask_worker import main
+
+    main([scheduler, "--nworkers", str(n_workers), "--nthreads", str(nthreads), "--resources",
+          f"{JOB_RESOURCE}=1", "--no-dashboard"], standalone_mode=True)
