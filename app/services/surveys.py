@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -324,6 +325,8 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     # left out: their discs are tracked as discs).
     detecting_share = 0.35 if params.feature_tracks else 0.5
     context.progress("detecting targets", 0.0)
+    started = time.perf_counter()
+    stage_s: dict[str, float] = {}
 
     def detected(finished: int, total: int) -> None:
         frames = min(finished * FRAMES_PER_PIECE, count)
@@ -332,6 +335,7 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     pieces = [FramePiece(params, range(a, min(a + FRAMES_PER_PIECE, count))) for a in range(0, count, FRAMES_PER_PIECE)]
     by_position = dict(found for piece in context.fan_out(detect_piece, detector, pieces, detected) for found in piece)
     detections = [by_position[position] for position in sorted(by_position)]
+    stage_s["detecting"] = time.perf_counter() - started
     tracker = None
     if params.feature_tracks:
         tracker = FeatureTracker()
@@ -342,6 +346,7 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
             tracker.add(gray, exclusion_mask(gray.shape, discs))
             context.progress("tracking features", detecting_share + (0.5 - detecting_share) * (position + 1) / count,
                              f"frame {position + 1} of {count}")
+        stage_s["tracking"] = time.perf_counter() - started - stage_s["detecting"]
     found = sum(len(d) for d in detections)
     if found == 0:
         raise SurveyError(f"no target was found in any of the {len(detections)} frames: "
@@ -352,12 +357,15 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
         context.progress(stage, 0.5 + 0.48 * min(max(fraction, 0.0), 1.0))
 
     features = FeatureObservations.from_tracks(tracker.tracks()) if tracker is not None else None
+    reconstructing = time.perf_counter()
     result = survey(detections, params.width, params.height, params.marker_size_m, intrinsics=intrinsics,
                     progress=progress, features=features)
+    stage_s["reconstructing"] = time.perf_counter() - reconstructing
     document = MapDocument.model_validate(result.to_map_document(frame="survey", survey_job_id=context.job_id))
     summary = result.summary()
     # The calibration trajectory: the camera of each frame used (None: not registered).
     summary.update({"frames_used": len(detections), "detections": found, "feature_tracks": params.feature_tracks,
+                    "stage_s": {stage: round(seconds, 3) for stage, seconds in stage_s.items()},
                     "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
     assert context.environment_id is not None
     with context.finishing(summary) as session:

@@ -1,0 +1,115 @@
+"""The job engine as a deployment runs it: a `fidotrack scheduler`, `fidotrack worker`s and
+`fidotrack serve` as separate processes (on one machine here; they speak TCP, as across
+machines). A survey posted to the web process runs on the workers, outlives a restart of
+the web process, and runs again when the worker running it is killed."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from app.settings import Settings
+from tests.conftest import free_port, start_server, wait_for_job
+from tests.routers.test_survey_api import MARKER_M, room  # noqa: F401  (the fixture: a rendered room's MP4)
+
+FIDOTRACK = str(Path(sys.executable).parent / "fidotrack")
+
+
+class Engine:
+    """A scheduler and a worker command (with its worker processes), each in its own
+    process group so that a test can kill one worker process alone."""
+
+    def __init__(self, data_dir: Path, log: Path, n_workers: int) -> None:
+        self.address = f"tcp://127.0.0.1:{free_port()}"
+        port = self.address.rsplit(":", 1)[1]
+        self.env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_JOB_SCHEDULER": self.address}
+        self.log = log
+        with log.open("ab") as out:
+            self.scheduler = subprocess.Popen([FIDOTRACK, "scheduler", "--host", "127.0.0.1", "--port", port],
+                                              env=self.env, stdout=out, stderr=subprocess.STDOUT)
+            self.workers = subprocess.Popen([FIDOTRACK, "worker", "--nworkers", str(n_workers)], env=self.env,
+                                            stdout=out, stderr=subprocess.STDOUT)
+
+    def stop(self) -> None:
+        for process in (self.workers, self.scheduler):
+            process.terminate()
+        for process in (self.workers, self.scheduler):
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+@pytest.fixture
+def engine(settings: Settings, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Engine]:
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = Engine(settings.data_dir, tmp_path / "engine.log", n_workers=2)
+    monkeypatch.setenv("FIDOTRACK_JOB_SCHEDULER", engine.address)
+    try:
+        yield engine
+    finally:
+        engine.stop()
+
+
+def _survey(http: httpx.Client, video: bytes) -> str:
+    env = http.post("/environments", json={"name": "room", "marker_size_m": MARKER_M}).json()["id"]
+    reply = http.post(f"/environments/{env}/survey", files={"video": ("room.mp4", video, "video/mp4")})
+    assert reply.status_code == 202, reply.text
+    return reply.json()["id"]
+
+
+def _worker_pid(engine: Engine, worker: str) -> int:
+    """The process of the worker at `worker` (tcp://host:port), as it says itself."""
+    from distributed import Client
+
+    with Client(engine.address, timeout=30) as client:
+        return int(client.run(os.getpid, workers=[worker])[worker])
+
+
+def test_a_survey_runs_on_the_workers_and_outlives_a_restart_of_the_web_process(
+        settings: Settings, engine: Engine, room, tmp_path: Path) -> None:  # noqa: F811
+    server = start_server(settings.data_dir, tmp_path / "web.log")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as http:
+            job_id = _survey(http, room[2])
+            running = wait_for_job(http, job_id, {"running"}, timeout=120, poll=0.1)
+            assert running["worker"] and running["attempt"] == 1
+    finally:
+        server.stop()
+    # No web process for a while: the job goes on, on its worker.
+    time.sleep(2.0)
+    server = start_server(settings.data_dir, tmp_path / "web.log")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as http:
+            body = wait_for_job(http, job_id, timeout=300)
+            assert body["status"] == "succeeded", body
+            assert body["attempt"] == 1 and body["result"]["n_targets"] >= 12
+            assert body["result"]["stage_s"]["detecting"] > 0
+    finally:
+        server.stop()
+
+
+def test_a_survey_whose_worker_is_killed_runs_again_on_another(
+        settings: Settings, engine: Engine, room, tmp_path: Path) -> None:  # noqa: F811
+    server = start_server(settings.data_dir, tmp_path / "web.log")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as http:
+            job_id = _survey(http, room[2])
+            running = wait_for_job(http, job_id, lambda j: j["status"] == "running" and j["progress"] > 0,
+                                   timeout=120, poll=0.05)
+            os.kill(_worker_pid(engine, running["worker"]), signal.SIGKILL)
+            body = wait_for_job(http, job_id, timeout=300)
+            assert body["status"] == "succeeded", body
+            assert body["attempt"] == 2 and body["worker"] != running["worker"]
+            document = http.get(f"/environments/{body['environment_id']}/map").json()
+            assert document["survey_job_id"] == job_id and len(document["targets"]) >= 12
+    finally:
+        server.stop()
