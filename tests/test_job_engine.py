@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -111,5 +112,50 @@ def test_a_survey_whose_worker_is_killed_runs_again_on_another(
             assert body["attempt"] == 2 and body["worker"] != running["worker"]
             document = http.get(f"/environments/{body['environment_id']}/map").json()
             assert document["survey_job_id"] == job_id and len(document["targets"]) >= 12
+    finally:
+        server.stop()
+
+
+def test_jobs_of_a_scheduler_that_dies_are_failed_not_left_running(
+        settings: Settings, engine: Engine, room, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: F811
+    monkeypatch.setenv("FIDOTRACK_JOB_LEASE_S", "6")
+    server = start_server(settings.data_dir, tmp_path / "web.log")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as http:
+            job_id = _survey(http, room[2])
+            wait_for_job(http, job_id, {"running"}, timeout=120, poll=0.05)
+            engine.scheduler.kill()
+            engine.workers.kill()  # (its worker processes exit with their nanny)
+            body = wait_for_job(http, job_id, timeout=90)
+            assert body["status"] == "failed" and body["stage"] in ("interrupted", "worker lost"), body
+            assert http.get("/readyz").status_code == 200
+    finally:
+        server.stop()
+
+
+def test_several_server_processes_share_one_local_cluster_and_its_limits(
+        settings: Settings, room, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: F811
+    # The embedded default with 2 web processes: one job slot and one queue limit for both.
+    monkeypatch.setenv("FIDOTRACK_MAX_CONCURRENT_JOBS", "1")
+    monkeypatch.setenv("FIDOTRACK_MAX_QUEUED_JOBS", "2")
+    server = start_server(settings.data_dir, tmp_path / "web.log", command=[FIDOTRACK, "serve", "--workers", "2"])
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as http:
+            env = http.post("/environments", json={"name": "room", "marker_size_m": MARKER_M}).json()["id"]
+
+            def post(_: int) -> httpx.Response:
+                with httpx.Client(base_url=server.url, timeout=60) as own:  # a connection of its own
+                    return own.post(f"/environments/{env}/survey",
+                                    files={"video": ("room.mp4", room[2], "video/mp4")})
+
+            with ThreadPoolExecutor(6) as pool:
+                replies = list(pool.map(post, range(6)))
+            accepted = [r.json()["id"] for r in replies if r.status_code == 202]
+            assert len(accepted) == 2 and all(r.status_code == 429 for r in replies if r.status_code != 202)
+            jobs = [wait_for_job(http, job_id, timeout=300) for job_id in accepted]
+            assert all(job["status"] == "succeeded" for job in jobs), jobs
+            first, second = sorted(jobs, key=lambda job: job["started_at"])
+            # One slot, on one worker, whichever web process took each survey.
+            assert second["started_at"] >= first["finished_at"] and first["worker"] == second["worker"]
     finally:
         server.stop()

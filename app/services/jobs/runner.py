@@ -132,14 +132,11 @@ class JobRunner:
         with self._sessions() as session:
             lost = store.fail_silent(session, self.settings.job_lease_s)
             by_engine = store.active_by_engine(session, SUBMIT_GRACE_S)
-        own = self.address
         gone: list[str] = []
         for engine, job_ids in by_engine.items():
-            if engine == own:
-                known = set(self._client.run_on_scheduler(_known_keys, [task_key(j) for j in job_ids]))
-                gone += [j for j in job_ids if task_key(j) not in known]
-            elif not engine_reachable(engine):
-                gone += job_ids
+            held = self._held(engine, [task_key(j) for j in job_ids])
+            if held is not None:
+                gone += [j for j in job_ids if task_key(j) not in held]
         if gone:
             with self._sessions() as session:
                 store.fail(session, gone, "the job engine this job was given to is gone (its scheduler stopped "
@@ -148,6 +145,18 @@ class JobRunner:
         if lost or gone:
             log.warning("failed %d job(s) the engine lost", len(lost) + len(gone))
         return lost + gone
+
+    def _held(self, engine: str, keys: list[str]) -> set[str] | None:
+        """Which of `keys` the scheduler at `engine` holds: asked when it is this process's
+        engine; None (cannot tell) for another that listens; none when nothing listens."""
+        with self._lock:
+            client = self._client if self._client is not None and self._client.scheduler.address == engine else None
+        if client is not None:
+            try:
+                return set(client.run_on_scheduler(_known_keys, keys))
+            except Exception:  # noqa: BLE001  (the scheduler went away: see whether anything listens)
+                log.warning("the job scheduler at %s did not answer", engine)
+        return None if engine_reachable(engine) else set()
 
     def _reap_every(self) -> None:
         interval = min(self.settings.job_lease_s / 3, 10.0)

@@ -1,0 +1,172 @@
+"""A survey of 1000 frames on the job engine: the embedded default (`fidotrack serve`
+alone, its local cluster), and a scheduler with 1 and with 2 worker processes of its own
+(`fidotrack scheduler`, `fidotrack worker --nworkers N`), on this machine.
+
+The video: the bench room (`app.sim.BENCH_ROOM`, 30 cards) on a 1000-frame calibration
+walk at 640x480, encoded as a phone does (H.264, a keyframe a second, B-frames). Each run
+gets a fresh database and data directory and the same upload, through the REST API as a
+client sends it; the job's own `stage_s` says how long detection (fanned out over the
+workers) and the reconstruction (one worker) took.
+
+Run: ``.venv/bin/python bench/bench_jobs.py [--frames 1000] [--cache DIR]`` (a markdown table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.sim import BENCH_CAMERA, BENCH_ROOM  # noqa: E402
+from bench.bench_track import _free_port  # noqa: E402
+
+FIDOTRACK = str(Path(sys.executable).parent / "fidotrack")
+
+
+def render_video(path: Path, n_frames: int) -> None:
+    """The bench room's calibration walk as an H.264 MP4 (a phone's keyframe interval)."""
+    import av
+    import cv2
+
+    frames = BENCH_ROOM.walk(0, n_frames, "calibration").frames(BENCH_CAMERA)
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = BENCH_CAMERA.width, BENCH_CAMERA.height, "yuv420p"
+        stream.options = {"g": "30", "bf": "2", "crf": "18"}
+        for image, _ in tqdm(frames, total=n_frames, desc="rendering", unit="frame"):
+            bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(bgr, format="bgr24")))
+        container.mux(stream.encode())
+
+
+@dataclass
+class Run:
+    name: str
+    job_s: float
+    detecting_s: float
+    reconstructing_s: float
+    frames: int
+    n_targets: int
+    rms_px: float
+    attempt: int
+
+
+@contextmanager
+def _processes(commands: list[list[str]], env: dict[str, str], log: Path) -> Iterator[None]:
+    out = log.open("ab")
+    started = [subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT) for command in commands]
+    try:
+        yield
+    finally:
+        for process in reversed(started):
+            process.terminate()
+        for process in reversed(started):
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        out.close()
+
+
+def _wait_ready(url: str) -> None:
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("the server did not become ready")
+
+
+def survey_once(name: str, video: Path, n_workers: int | None, frames: int) -> Run:
+    """One survey of `video` on a fresh service: with `n_workers`, on a scheduler of its
+    own with that many worker processes; None: the embedded default."""
+    with tempfile.TemporaryDirectory(prefix="fidotrack-bench-jobs-") as folder:
+        data = Path(folder)
+        port = _free_port()
+        env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data), "FIDOTRACK_PORT": str(port),
+               "FIDOTRACK_LOG_LEVEL": "WARNING"}
+        env.pop("FIDOTRACK_DATABASE_URL", None)
+        commands = []
+        if n_workers is not None:
+            scheduler_port = str(_free_port())
+            env["FIDOTRACK_JOB_SCHEDULER"] = f"tcp://127.0.0.1:{scheduler_port}"
+            commands += [[FIDOTRACK, "scheduler", "--host", "127.0.0.1", "--port", scheduler_port],
+                         [FIDOTRACK, "worker", "--nworkers", str(n_workers)]]
+        commands.append([FIDOTRACK, "serve"])
+        with _processes(commands, env, data / "service.log"):
+            url = f"http://127.0.0.1:{port}"
+            _wait_ready(url)
+            with httpx.Client(base_url=url, timeout=120) as http:
+                env_id = http.post("/environments", json={"name": "bench", "marker_size_m": BENCH_ROOM.marker_size_m}
+                                   ).json()["id"]
+                with video.open("rb") as upload:
+                    started = time.perf_counter()
+                    reply = http.post(f"/environments/{env_id}/survey", data={"max_frames": str(frames)},
+                                      files={"video": ("walk.mp4", upload, "video/mp4")})
+                reply.raise_for_status()
+                job_id = reply.json()["id"]
+                with tqdm(total=100, desc=name, unit="%") as bar:
+                    while (job := http.get(f"/jobs/{job_id}").json())["status"] in ("queued", "running"):
+                        bar.n = round(100 * job["progress"])
+                        bar.set_postfix_str(job["stage"][:30])
+                        bar.refresh()
+                        time.sleep(0.25)
+                job_s = time.perf_counter() - started
+        if job["status"] != "succeeded":
+            raise RuntimeError(f"{name}: the survey {job['status']}: {job.get('error')}")
+        result = job["result"]
+        return Run(name, job_s, result["stage_s"]["detecting"], result["stage_s"]["reconstructing"],
+                   result["frames_used"], result["n_targets"], result["rms_px"], job["attempt"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--cache", type=Path, help="keep the rendered video here between runs")
+    args = parser.parse_args()
+    cache = args.cache or Path(tempfile.mkdtemp(prefix="fidotrack-bench-video-"))
+    cache.mkdir(parents=True, exist_ok=True)
+    video = cache / f"bench_room_calibration_{args.frames}.mp4"
+    if not video.exists():
+        render_video(video, args.frames)
+    runs = [survey_once("embedded default", video, None, args.frames),
+            survey_once("1 engine worker", video, 1, args.frames),
+            survey_once("2 engine workers", video, 2, args.frames)]
+    one = runs[1]
+    print(f"\n{args.frames}-frame survey of the bench room (H.264 640x480, {video.stat().st_size / 1e6:.1f} MB); "
+          f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}\n")
+    print("| run | job s | detecting s | detection fps | reconstructing s | detection speed-up | job speed-up | "
+          "cards | RMS px | attempt |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for run in runs:
+        print(f"| {run.name} | {run.job_s:.1f} | {run.detecting_s:.1f} | {run.frames / run.detecting_s:.1f} | "
+              f"{run.reconstructing_s:.1f} | {one.detecting_s / run.detecting_s:.2f} | {one.job_s / run.job_s:.2f} | "
+              f"{run.n_targets} | {run.rms_px:.3f} | {run.attempt} |")
+    detect_frame_s = one.detecting_s / one.frames
+    print(f"\nOn paper, from the 1-worker run: {detect_frame_s * 1e3:.1f} ms of detection a frame on one core, "
+          f"{one.reconstructing_s:.1f} s of reconstruction (one worker, whatever the cluster).")
+    print("| machines (2 cores each) | detection s | job s (detection + reconstruction) |")
+    print("|---|---|---|")
+    for machines in (1, 2, 4, 8):
+        detect = one.detecting_s / (2 * machines)
+        print(f"| {machines} | {detect:.1f} | {detect + one.reconstructing_s:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
