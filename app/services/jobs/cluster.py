@@ -10,8 +10,11 @@ while the pieces a job fans out (`map_on_workers`) need none and run on every wo
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
+import signal
+import sys
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -28,8 +31,8 @@ R = TypeVar("R")
 
 #: The resource a job task holds: one per worker process.
 JOB_RESOURCE = "job"
-#: The scheduler's port when `fidotrack scheduler` is not told another.
-DEFAULT_SCHEDULER_PORT = 8786
+#: prctl's option to have a signal sent when the parent process dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
 #: Settings the local cluster's workers take from the web process (through their environment).
 _WORKER_SETTINGS = ("data_dir", "sqlite_busy_timeout_ms", "log_format", "log_level", "job_heartbeat_s",
                     "job_attempts", "max_image_pixels")
@@ -67,7 +70,7 @@ def local_cluster(settings: Settings):  # type: ignore[no-untyped-def]  (distrib
     env = worker_environment(settings)
     workers = {
         f"local-{k}": {"cls": Nanny, "options": {
-            "nthreads": 1, "env": env, "dashboard": False,
+            "nthreads": 1, "env": env, "dashboard": False, "preload": [__name__],
             "resources": {JOB_RESOURCE: 1} if k < settings.max_concurrent_jobs else {},
         }}
         for k in range(n_workers)
@@ -102,6 +105,18 @@ def worker_state() -> WorkerState:
     logs.configure(settings.log_format, settings.log_level)
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     return WorkerState(settings, make_sessionmaker(engine))
+
+
+def dask_setup(worker: object) -> None:
+    """(Dask's preload hook, in each worker process at its start.) The worker dies with the
+    process that started it: a local cluster's workers with their server, a `fidotrack
+    worker`'s with it, even when it is killed outright. Its job is then failed or run
+    again as for any dead worker, rather than finished behind a restarted server's back."""
+    if sys.platform == "linux":
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        if os.getppid() == 1:  # its parent died before the line above
+            os._exit(1)
 
 
 def on_worker() -> bool:
@@ -171,4 +186,4 @@ def run_workers(scheduler: str, n_workers: int, nthreads: int) -> None:
     from distributed.cli.dask_worker import main
 
     main([scheduler, "--nworkers", str(n_workers), "--nthreads", str(nthreads), "--resources",
-          f"{JOB_RESOURCE}=1", "--no-dashboard"], standalone_mode=True)
+          f"{JOB_RESOURCE}=1", "--no-dashboard", "--preload", __name__], standalone_mode=True)

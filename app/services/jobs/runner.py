@@ -23,7 +23,7 @@ from app.settings import Settings
 
 log = logging.getLogger("app.jobs")
 
-#: A job row younger than this may not have reached the engine yet (it is stored first).
+#: A job row younger than this may not have reached its scheduler yet (it is stored first).
 SUBMIT_GRACE_S = 10.0
 #: How long a web process waits for an external scheduler before saying it cannot be reached.
 CONNECT_TIMEOUT_S = 10.0
@@ -133,10 +133,11 @@ class JobRunner:
             lost = store.fail_silent(session, self.settings.job_lease_s)
             by_engine = store.active_by_engine(session, SUBMIT_GRACE_S)
         gone: list[str] = []
-        for engine, job_ids in by_engine.items():
-            held = self._held(engine, [task_key(j) for j in job_ids])
+        for engine, jobs in by_engine.items():
+            held, asked = self._held(engine, [task_key(job_id) for job_id, _ in jobs])
             if held is not None:
-                gone += [j for j in job_ids if task_key(j) not in held]
+                # A young job its own scheduler does not hold yet may be on its way there.
+                gone += [job_id for job_id, young in jobs if task_key(job_id) not in held and not (asked and young)]
         if gone:
             with self._sessions() as session:
                 store.fail(session, gone, "the job engine this job was given to is gone (its scheduler stopped "
@@ -146,17 +147,18 @@ class JobRunner:
             log.warning("failed %d job(s) the engine lost", len(lost) + len(gone))
         return lost + gone
 
-    def _held(self, engine: str, keys: list[str]) -> set[str] | None:
-        """Which of `keys` the scheduler at `engine` holds: asked when it is this process's
-        engine; None (cannot tell) for another that listens; none when nothing listens."""
+    def _held(self, engine: str, keys: list[str]) -> tuple[set[str] | None, bool]:
+        """Which of `keys` the scheduler at `engine` holds, and whether it was asked: it is
+        when it is this process's engine; another that listens cannot be asked (None);
+        where nothing listens, nothing is held."""
         with self._lock:
             client = self._client if self._client is not None and self._client.scheduler.address == engine else None
         if client is not None:
             try:
-                return set(client.run_on_scheduler(_known_keys, keys))
+                return set(client.run_on_scheduler(_known_keys, keys)), True
             except Exception:  # noqa: BLE001  (the scheduler went away: see whether anything listens)
                 log.warning("the job scheduler at %s did not answer", engine)
-        return None if engine_reachable(engine) else set()
+        return (None if engine_reachable(engine) else set()), False
 
     def _reap_every(self) -> None:
         interval = min(self.settings.job_lease_s / 3, 10.0)
@@ -183,7 +185,7 @@ class JobRunner:
         address = client.scheduler.address
         if cluster is not None:
             with self._sessions() as session:
-                ids = store.active_by_engine(session, 0.0).get(address, [])
+                ids = [job_id for job_id, _ in store.active_by_engine(session, 0.0).get(address, [])]
                 store.fail(session, ids, "the server shut down while this job was queued or running",
                            stage="interrupted")
             self._remove_uploads(ids)

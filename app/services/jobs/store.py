@@ -15,7 +15,7 @@ from datetime import timedelta
 from typing import Any, NamedTuple
 
 from pydantic import BaseModel
-from sqlalchemy import Select, func, select, update
+from sqlalchemy import Select, case, func, select, update
 from sqlalchemy.orm import Session
 
 from app.db import lock_for_writing, utcnow
@@ -48,9 +48,10 @@ def runner_id() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def create(session: Session, kind: str, params: BaseModel, *, engine: str, environment_id: int | None = None,
-           job_id: str | None = None, max_active: int | None = None) -> Job:
-    """Store a queued job, to be run by the job engine whose scheduler is at `engine`. With
+def create(session: Session, kind: str, params: BaseModel, *, engine: str | None = None,
+           environment_id: int | None = None, job_id: str | None = None, max_active: int | None = None) -> Job:
+    """Store a queued job, to be run by the job engine whose scheduler is at `engine` (None:
+    by none; the reaper fails such a row once it is older than a submission takes). With
     `max_active`, TooMany (429) when that many jobs are already queued or running, counted
     and inserted under one lock so that web processes submitting at once cannot overshoot."""
     if max_active is not None:
@@ -217,12 +218,13 @@ def fail_silent(session: Session, lease_s: float) -> list[str]:
     return silent
 
 
-def active_by_engine(session: Session, older_than_s: float) -> dict[str, list[str]]:
-    """Ids of the jobs queued or running, created more than `older_than_s` ago, by the
-    engine (scheduler address) they were submitted to."""
-    cutoff = utcnow() - timedelta(seconds=older_than_s)
-    found: dict[str, list[str]] = {}
-    for job_id, engine in session.execute(
-            select(Job.id, Job.runner).where(Job.status.in_(ACTIVE), Job.created_at < cutoff)):
-        found.setdefault(engine or "", []).append(job_id)
+def active_by_engine(session: Session, young_s: float) -> dict[str, list[tuple[str, bool]]]:
+    """(id, whether it was created less than `young_s` ago) of the jobs queued or running,
+    by the engine (scheduler address; "" for none) they were given to."""
+    cutoff = utcnow() - timedelta(seconds=young_s)
+    found: dict[str, list[tuple[str, bool]]] = {}
+    young = case((Job.created_at >= cutoff, True), else_=False)
+    for job_id, engine, is_young in session.execute(
+            select(Job.id, Job.runner, young).where(Job.status.in_(ACTIVE))):
+        found.setdefault(engine or "", []).append((job_id, bool(is_young)))
     return found
