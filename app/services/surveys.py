@@ -310,7 +310,8 @@ class FramePiece:
 def detect_piece(detector: Detector, piece: FramePiece) -> list[tuple[int, list[DetectedTarget]]]:
     """(position, targets) of each frame of `piece` that could be read, in order (on a
     worker of the job engine)."""
-    return [(position, detector.detect(gray).targets) for position, _, gray in read_frames(piece.params, piece.positions)]
+    frames = read_frames(piece.params, piece.positions)
+    return [(position, detector.detect(gray).targets) for position, _, gray in frames]
 
 
 @job_handler(JobKind.SURVEY, SurveyParams)
