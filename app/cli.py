@@ -125,8 +125,7 @@ def _worker(args: argparse.Namespace) -> int:
         print("fidotrack worker: give the scheduler's address (--scheduler or FIDOTRACK_JOB_SCHEDULER)",
               file=sys.stderr)
         return 2
-    run_workers(scheduler, args.nworkers, args.nthreads)
-    return 0
+    return run_workers(scheduler, args.nworkers, args.nthreads)
 
 
 def _markers(args: argparse.Namespace) -> int:

@@ -316,15 +316,34 @@ class Client:
         return url + "/track" + query
 
     def track(self, environment_id: int, frames: Iterable[bytes | np.ndarray], config: TrackConfig | None = None,
-              quality: int = 90) -> Iterator[TrackFrame]:
+              quality: int = 90, on_hello: Callable[[TrackHello], None] | None = None) -> Iterator[TrackFrame]:
         """Stream `frames` to ``/track`` in lock-step (each frame leaves when the previous
         reply is in, so nothing queues up) and yield the reply to each, in order.
 
         Frames the service refuses (``bad_frame``, ``frame_too_large``) are skipped with no
         reply; a refused connection, or a refused `config`, raises `TrackRefused`.
+
+        `on_hello` gets the connection's hello, and each later one: the service sends one
+        (``reason`` ``map_changed`` or ``classifier_changed``) when the environment's map
+        or classifier changes while the connection is open; the replies after it are posed
+        against the new map. The environment deleted meanwhile raises `TrackRefused`.
         """
         from websockets.exceptions import ConnectionClosed
         from websockets.sync.client import connect
+
+        def receive(ws: Any) -> dict[str, Any]:
+            """The next message that is not a hello (those go to `on_hello`)."""
+            while True:
+                try:
+                    message = json.loads(ws.recv(timeout=60))
+                except ConnectionClosed as closed:
+                    reason = closed.rcvd.reason if closed.rcvd is not None else "the connection closed"
+                    raise TrackRefused("closed", reason) from closed
+                if message.get("type") != "hello":
+                    return message
+                hello = TrackHello.model_validate(message)
+                if on_hello is not None:
+                    on_hello(hello)
 
         headers = {"X-API-Key": self.api_key} if self.api_key else None
         with connect(self.track_url(environment_id), additional_headers=headers, max_size=None,
@@ -332,21 +351,22 @@ class Client:
             hello = json.loads(ws.recv(timeout=30))
             if hello.get("type") != "hello":
                 raise TrackRefused(hello.get("code", "refused"), hello.get("message", str(hello)))
-            TrackHello.model_validate(hello)
+            first = TrackHello.model_validate(hello)
+            if on_hello is not None:
+                on_hello(first)
             if config is not None:
                 ws.send(config.model_dump_json())
-                echo = json.loads(ws.recv(timeout=30))  # the config echoed, or why it is refused
+                echo = receive(ws)  # the config echoed, or why it is refused
                 if echo.get("type") == "error":
                     raise TrackRefused(echo.get("code", "error"), echo.get("message", ""))
             for frame in frames:
-                ws.send(encode_frame(frame, quality))
                 try:
-                    message = json.loads(ws.recv(timeout=60))
-                    while message.get("type") == "error" and message.get("code") in NOTICES:
-                        message = json.loads(ws.recv(timeout=60))  # the frame's reply is still to come
-                except ConnectionClosed as closed:
-                    reason = closed.rcvd.reason if closed.rcvd is not None else "the connection closed"
-                    raise TrackRefused("closed", reason) from closed
+                    ws.send(encode_frame(frame, quality))
+                except ConnectionClosed:  # closed after the last reply (its reason follows)
+                    pass
+                message = receive(ws)
+                while message.get("type") == "error" and message.get("code") in NOTICES:
+                    message = receive(ws)  # the frame's reply is still to come
                 if message.get("type") == "frame":
                     yield TrackFrame.model_validate(message)
                 elif message.get("type") == "error" and message.get("seq") is None:

@@ -81,6 +81,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
     finally:
         app.state.image_workers.shutdown()
+        await anyio.to_thread.run_sync(app.state.track_streams.shutdown)
         await anyio.to_thread.run_sync(runner.shutdown)
         engine.dispose()
 

@@ -305,7 +305,8 @@ class MapDocument(BaseModel):
                                                                              "once.")
     rms_px: NonNegativeFinite | None = Field(None, description=(
         "The survey's reprojection RMS over every disc observation it kept, px; null for a map measured otherwise."))
-    survey_job_id: str | None = Field(None, max_length=32, description="The survey job that made the map, or null.")
+    survey_job_id: Annotated[str, AfterValidator(_printable)] | None = Field(
+        None, max_length=32, description="The survey job that made the map, or null (no control characters).")
 
     @field_validator("targets")
     @classmethod
@@ -455,6 +456,7 @@ _EXAMPLE_SURVEY_RESULT: dict[str, Any] = {
     "timing_s": {"intrinsics": 0.4, "initial": 0.2, "register": 3.1, "bundle": 5.8, "scale": 0.1,
                  "covariance": 0.9},
     "frames_used": 4, "detections": 7, "feature_tracks": False,
+    "stage_s": {"detecting": 0.21, "reconstructing": 0.35},
     "trajectory": [
         {"R": _EXAMPLE_R, "t": [-0.5918, -0.311, -1.742], "position": [0.95, 0.42, 1.55]},
         {"R": [[0.9921, -0.0312, -0.1215], [0.0215, 0.9968, -0.0803], [0.1236, 0.0771, 0.9893]],
@@ -492,6 +494,9 @@ class SurveyResult(BaseModel):
     frames_used: int = Field(description="Frames read from the upload, evenly spaced (at most max_frames).")
     detections: int = Field(description="Targets detected over those frames, counted once per frame.")
     feature_tracks: bool = Field(False, description="Whether the scene's own points were tracked too.")
+    stage_s: dict[str, float] = Field(default_factory=dict, description=(
+        "Seconds each stage took: `detecting` (every frame's targets, spread over the job engine's workers), "
+        "`tracking` (the scene's points, with feature_tracks), `reconstructing` (structure from motion)."))
     trajectory: list[FramePose | None] = Field(default_factory=list, description=(
         "The camera of each frame read, in order; null for a frame not registered."))
 
@@ -844,11 +849,22 @@ class TrackConfig(BaseModel):
         "FreeD output, if it has one."))
 
 
+#: Why a `TrackHello` is sent: ``connected`` (the first message of a connection),
+#: ``map_changed`` (the environment's map was replaced while the connection was open: a
+#: survey, an import, an alignment, a restore), ``classifier_changed`` (its classifier was).
+TrackHelloReason = Literal["connected", "map_changed", "classifier_changed"]
+
+
 class TrackHello(BaseModel):
-    """Server -> client, first: the connection is accepted and tracks against this map."""
+    """Server -> client, first: the connection is accepted and tracks against this map.
+    Sent again, with ``reason`` ``map_changed`` or ``classifier_changed``, when the
+    environment's map or classifier changes while the connection is open: the replies
+    after it are posed against the new map, with the connection's tracking state (its
+    previous poses, its smoothing filter) started afresh."""
 
     model_config = ConfigDict(json_schema_extra=_examples(
-        {"type": "hello", "environment_id": 1, "camera": _EXAMPLE_CAMERA, "targets": 24, "map_frame": "world"}))
+        {"type": "hello", "environment_id": 1, "camera": _EXAMPLE_CAMERA, "targets": 24, "map_frame": "world",
+         "reason": "connected"}))
 
     type: Literal["hello"] = Field("hello", description='Always "hello".')
     environment_id: int = Field(description="The environment whose map the poses refer to.")
@@ -858,6 +874,9 @@ class TrackHello(BaseModel):
     map_frame: Literal["survey", "world"] = Field("world", description=(
         "The map's frame. In a survey's own frame nothing is up: align the map (docs/map-format.md) before "
         "using poses in the y-up or z-up client conventions or FreeD's pan and tilt."))
+    reason: TrackHelloReason = Field("connected", description=(
+        "connected: the connection's first message; map_changed or classifier_changed: the environment's map "
+        "or classifier changed while the connection was open, and the following replies use the new one."))
 
 
 class TrackFrame(BaseModel):

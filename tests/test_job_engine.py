@@ -39,6 +39,15 @@ class Engine:
             self.workers = subprocess.Popen([FIDOTRACK, "worker", "--nworkers", str(n_workers)], env=self.env,
                                             stdout=out, stderr=subprocess.STDOUT)
 
+    def restart_scheduler(self) -> None:
+        """Kill the scheduler and start another at the same address (its workers wait)."""
+        self.scheduler.kill()
+        self.scheduler.wait(30)
+        port = self.address.rsplit(":", 1)[1]
+        with self.log.open("ab") as out:
+            self.scheduler = subprocess.Popen([FIDOTRACK, "scheduler", "--host", "127.0.0.1", "--port", port],
+                                              env=self.env, stdout=out, stderr=subprocess.STDOUT)
+
     def stop(self) -> None:
         for process in (self.workers, self.scheduler):
             process.terminate()
@@ -157,5 +166,27 @@ def test_several_server_processes_share_one_local_cluster_and_its_limits(
             first, second = sorted(jobs, key=lambda job: job["started_at"])
             # One slot, on one worker, whichever web process took each survey.
             assert second["started_at"] >= first["finished_at"] and first["worker"] == second["worker"]
+    finally:
+        server.stop()
+
+
+def test_the_web_process_takes_jobs_again_once_its_scheduler_is_back(
+        settings: Settings, engine: Engine, room, tmp_path: Path) -> None:  # noqa: F811
+    server = start_server(settings.data_dir, tmp_path / "web.log")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as http:
+            assert wait_for_job(http, _survey(http, room[2]), timeout=300)["status"] == "succeeded"
+            engine.restart_scheduler()
+            time.sleep(15.0)  # past the client's wait for the old scheduler: it has given up on it
+            deadline = time.monotonic() + 90
+            while True:  # 503 until the scheduler answers and a worker is back with it
+                env = http.post("/environments", json={"name": "again", "marker_size_m": MARKER_M}).json()["id"]
+                reply = http.post(f"/environments/{env}/survey", files={"video": ("room.mp4", room[2], "video/mp4")})
+                if reply.status_code == 202 or time.monotonic() > deadline:
+                    break
+                assert reply.status_code == 503, reply.text
+                time.sleep(1.0)
+            assert reply.status_code == 202, reply.text
+            assert wait_for_job(http, reply.json()["id"], timeout=300)["status"] == "succeeded"
     finally:
         server.stop()

@@ -107,9 +107,9 @@ def test_inputs_postgresql_cannot_store_are_answered_as_on_sqlite(client: TestCl
     assert reply.status_code == 422 and "classifier" in reply.text
     reply = client.patch(f"/environments/{env['id']}", json={"classifier_id": BEYOND_32_BITS})
     assert reply.status_code == 422 and "classifier" in reply.text
-    with_nul = {**example_map(2), "survey_job_id": "job\x00"}
-    reply = client.put(f"/environments/{env['id']}/map", json=with_nul)
-    assert reply.status_code == 422 and "survey_job_id" in reply.text
+    for job_id in ("job\x00", "job\nforged log line"):
+        reply = client.put(f"/environments/{env['id']}/map", json={**example_map(2), "survey_job_id": job_id})
+        assert reply.status_code == 422 and "survey_job_id" in reply.text and "control" in reply.text
     # The refused map left the stored one as it was.
     assert client.get(f"/environments/{env['id']}/map").json()["survey_job_id"] is None
 

@@ -50,7 +50,13 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
     replace each other, and the reply says how many were dropped since the last one.
     A client over ``max_track_fps`` loses its excess frames the same way (never the
     newest) and gets at most one ``rate_limited`` error a second; connections beyond
-    ``max_track_connections`` are closed with 1013 (try again later).
+    ``max_track_connections`` (of the whole service, every server process together) are
+    closed with 1013 (try again later).
+
+    When the environment's map or classifier changes while a connection is open (a
+    survey, an import, an alignment), the connection switches to it within
+    ``map_poll_s`` and sends a new hello (``reason``: ``map_changed`` or
+    ``classifier_changed``) before the first reply posed against it.
 
     Each connection keeps its own tracking state: its previous poses predict where the
     map's targets are, and only those regions are searched (config ``regions``, on by
@@ -65,7 +71,7 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
     await websocket.accept()
     channel = _WebSocketChannel(websocket)
     try:
-        async with streams.connection(environment_id):
+        async with streams.connection():
             await streams.serve(channel, _environment_id(environment_id))
     except Refused as refused:
         with contextlib.suppress(ClientGone):

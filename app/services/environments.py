@@ -114,9 +114,6 @@ def stage_map(session: Session, environment_id: int, document: MapDocument, chan
     map it replaces as a version (`change` says what replaced it); the caller commits (a
     survey job commits it together with its own success)."""
     environment = get_row(session, environment_id)
-    if not can_match(document.survey_job_id):
-        # No job id has one, and PostgreSQL cannot store it: refused on every engine alike.
-        raise Invalid("survey_job_id: must not contain NUL")
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
     if outside:

@@ -1,12 +1,22 @@
-"""The /track sessions: admission against the connection limit, a token bucket per
-connection, and the loop in which the newest frame always wins.
+"""The /track sessions: admission against the service-wide connection limit, a token
+bucket per connection, the loop in which the newest frame always wins, and the switch to
+a new map while a connection is open.
 
-A connection has two tasks: one receives messages (frames are kept as the one pending
-frame, a newer one replacing it; config messages apply at once), the other processes
-the pending frame whenever there is one, in order, one at a time. Frames that arrive
-while one is processed replace each other and are counted in the next reply's
-``dropped``. A client over ``max_track_fps`` loses its excess frames the same way
-(never the newest) and gets at most one ``rate_limited`` error a second.
+A connection is admitted once its environment and map are found: it then takes one of
+the ``max_track_connections`` of the whole service (`TrackConnections`, rows in the
+database that every server process counts) and gives it back when it ends.
+
+A connection has three tasks: one receives messages (frames are kept as the one pending
+frame, a newer one replacing it; config messages apply at once), one processes the
+pending frame whenever there is one, in order, one at a time, and one asks every
+``map_poll_s`` whether the environment's map or classifier changed (a survey, an
+import, an alignment, on any server process). Frames that arrive while one is
+processed replace each other and are counted in the next reply's ``dropped``. A client
+over ``max_track_fps`` loses its excess frames the same way (never the newest) and gets
+at most one ``rate_limited`` error a second. A changed map is taken between two frames:
+the connection's tracking state starts afresh and a new `TrackHello` (``reason``
+``map_changed`` or ``classifier_changed``) says so before the first frame posed
+against it.
 
 The service speaks to the client through a `TrackChannel` (the router's WebSocket) in
 the messages of ``app.schemas`` (`TrackHello`, `TrackFrame`, `TrackConfig`,
@@ -18,7 +28,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import AsyncIterator
 from functools import partial
@@ -26,6 +35,7 @@ from typing import Protocol
 
 import anyio
 from pydantic import ValidationError
+from sqlalchemy.exc import IntegrityError
 
 from app import logs
 from app.schemas import (
@@ -37,6 +47,7 @@ from app.schemas import (
     TrackErrorCode,
     TrackFrame,
     TrackHello,
+    TrackHelloReason,
     TrackRefusal,
     TrackRefusalCode,
     TrackServerMessage,
@@ -47,6 +58,7 @@ from app.services import freed
 from app.services.errors import ServiceError
 from app.services.freed import FreeDSender, FreeDUnusable
 from app.services.pose_output import PoseOutput
+from app.services.track_connections import TrackConnections
 from app.services.tracking import StreamFrame, TrackingContext, TrackingService, TrackState
 from app.settings import Settings
 
@@ -85,26 +97,6 @@ class Refused(Exception):
         self.refusal = TrackRefusal(code=code, message=message)
 
 
-class ConnectionSlots:
-    """Open connections against a limit."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
-        self.open = 0
-        self._lock = threading.Lock()
-
-    def acquire(self) -> bool:
-        with self._lock:
-            if self.open >= self.limit:
-                return False
-            self.open += 1
-            return True
-
-    def release(self) -> None:
-        with self._lock:
-            self.open -= 1
-
-
 class TokenBucket:
     """``rate`` tokens a second, at most ``burst`` saved up; one token per processed frame."""
 
@@ -135,6 +127,7 @@ class _Stream:
 
     def __init__(self, context: TrackingContext, bucket: TokenBucket, freed_output: FreeDOutput | None) -> None:
         self.context = context
+        self.next_context: TrackingContext | None = None  # a changed map, taken before the next frame
         self.bucket = bucket
         self.rate_notice_at = -1e9  # monotonic time of the last rate_limited message
         self.freed_notice_at = -1e9  # ... and of the last freed message
@@ -151,52 +144,78 @@ class _Stream:
 
 
 class TrackStreams:
-    """The /track connections of one application."""
+    """The /track connections of one application (one server process)."""
 
     def __init__(self, tracking: TrackingService, *, settings: Settings, limiter: anyio.CapacityLimiter) -> None:
         self.tracking = tracking
         self.settings = settings
         self.limiter = limiter  # the threads that process frames, shared by every connection
-        self.slots = ConnectionSlots(settings.max_track_connections)
+        self.connections = TrackConnections(tracking.sessions, limit=settings.max_track_connections,
+                                            lease_s=settings.track_connection_lease_s)
+
+    def shutdown(self) -> None:
+        """Stop renewing this process's connections and delete them from the database (at
+        the application's shutdown, while the database is still there)."""
+        self.connections.close_all()
 
     @contextlib.asynccontextmanager
-    async def connection(self, environment_id: str | None) -> AsyncIterator[None]:
-        """One connection's slot, for the duration of the block: Refused when all are
-        taken. Every log line inside carries the connection's id."""
-        if not self.slots.acquire():
-            raise Refused("too_many_connections",
-                          f"the server already tracks {self.slots.limit} connections; try again later")
+    async def connection(self) -> AsyncIterator[None]:
+        """One connection's scope: every log line inside carries the connection's id."""
         token = logs.connection_id.set(logs.new_id())
-        log.info("track connection opened", extra={"fields": {"environment_id": environment_id}})
         try:
             yield
         finally:
-            self.slots.release()
-            log.info("track connection closed")
             logs.connection_id.reset(token)
 
     async def serve(self, channel: TrackChannel, environment_id: int) -> None:
         """Track the frames of `channel` against the environment's map until the client
-        leaves: Refused when the environment or its map does not exist."""
+        leaves: Refused when the environment or its map does not exist, or when the
+        service already holds ``max_track_connections`` connections."""
+        context = await self._context(environment_id)
         try:
-            context = await anyio.to_thread.run_sync(self.tracking.context, environment_id)
+            lease = await anyio.to_thread.run_sync(self.connections.open, environment_id)
+        except IntegrityError:  # the environment was deleted a moment ago
+            raise Refused("unknown_environment", f"environment {environment_id} not found") from None
+        if lease is None:
+            raise Refused("too_many_connections",
+                          f"the service already tracks {self.connections.limit} connections, its limit for all "
+                          "of its server processes together; try again later")
+        log.info("track connection opened", extra={"fields": {"environment_id": environment_id}})
+        try:
+            await self._track(channel, context)
+        finally:
+            # Also when the handler is cancelled (server shutdown): the slot must come back.
+            with anyio.CancelScope(shield=True):
+                try:
+                    await anyio.to_thread.run_sync(self.connections.close, lease)
+                except Exception as exc:  # the row goes stale and stops counting after a lease
+                    log.warning("track: could not release the connection: %r", exc)
+            log.info("track connection closed")
+
+    async def _context(self, environment_id: int) -> TrackingContext:
+        """The environment's tracking context, or Refused as a client connecting now would be."""
+        try:
+            return await anyio.to_thread.run_sync(self.tracking.context, environment_id)
         except ServiceError as exc:
             raise Refused("unknown_environment" if exc.status_code == 404 else "no_map", exc.detail) from None
+
+    async def _track(self, channel: TrackChannel, context: TrackingContext) -> None:
+        environment_id = context.environment_id
         freed_output = await anyio.to_thread.run_sync(self._freed_output, environment_id)
-        await channel.send(TrackHello(environment_id=environment_id, camera=context.camera_model,
-                                      targets=len(context.discs), map_frame=context.map_frame))
+        await channel.send(_hello(context, "connected"))
         fps = self.settings.max_track_fps
         stream = _Stream(context, TokenBucket(rate=fps, burst=max(1.0, fps)), freed_output)
         try:
             await self._use_freed(channel, stream, stream.config)
         except FreeDUnusable as exc:
             await _error(channel, "freed", str(exc))
-        receiver = asyncio.create_task(self._receive(channel, stream))
-        processor = asyncio.create_task(self._process(channel, stream))
+        tasks = {asyncio.create_task(self._receive(channel, stream)),
+                 asyncio.create_task(self._process(channel, stream)),
+                 asyncio.create_task(self._watch_map(stream))}
         try:
-            done, _ = await asyncio.wait({receiver, processor}, return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:  # also when this handler is cancelled (server shutdown)
-            for task in (receiver, processor):
+            for task in tasks:
                 task.cancel()
             if stream.sender is not None:
                 stream.sender.close()
@@ -205,13 +224,49 @@ class TrackStreams:
             if task.cancelled():
                 continue
             if isinstance(exc := task.exception(), Refused):
-                raise exc  # refused while open (idle): said and closed by the caller
+                raise exc  # refused while open (idle, map gone): said and closed by the caller
             if exc is not None and not isinstance(exc, ClientGone):
                 log.warning("track connection ended with %r", exc)
                 failed = True
         if failed:
             with contextlib.suppress(Exception):
                 await channel.close(TrackCloseCode.SERVER_ERROR)
+
+    async def _watch_map(self, stream: _Stream) -> None:
+        """Every ``map_poll_s``, ask (in a thread) for the environment's context: a new map
+        or classifier, stored by any process, is handed to the processing task; a map or
+        environment gone ends the connection with the refusal a new one would get."""
+        environment_id = stream.context.environment_id
+        while True:
+            await asyncio.sleep(self.settings.map_poll_s)
+            try:
+                context = await anyio.to_thread.run_sync(self.tracking.context, environment_id)
+            except ServiceError as exc:
+                raise Refused("unknown_environment" if exc.status_code == 404 else "no_map", exc.detail) from None
+            except Exception as exc:  # a busy database: the connection goes on with the map it has
+                log.warning("track: could not check environment %d's map: %r", environment_id, exc)
+                continue
+            current = stream.next_context or stream.context
+            if _reason(current, context) is not None:
+                stream.next_context = context
+                stream.wake.set()
+
+    async def _take_new_map(self, channel: TrackChannel, stream: _Stream) -> None:
+        """Switch to the changed context, between two frames: the poses so far were in the
+        old map (and its tracked regions, filter and prediction with them), so tracking
+        starts afresh; the new hello comes before the first reply posed against it."""
+        context, stream.next_context = stream.next_context, None
+        if context is None:
+            return
+        reason = _reason(stream.context, context)
+        if reason is None:
+            return
+        stream.context = context
+        stream.tracker = TrackState()
+        stream.output = PoseOutput()
+        log.info("track connection switched map", extra={"fields": {"reason": reason,
+                                                                     "map_version": context.map_version}})
+        await channel.send(_hello(context, reason))
 
     def _freed_output(self, environment_id: int) -> FreeDOutput | None:
         with self.tracking.sessions() as session:
@@ -262,6 +317,7 @@ class TrackStreams:
         while True:
             await stream.wake.wait()
             stream.wake.clear()
+            await self._take_new_map(channel, stream)
             if stream.pending is None:
                 if stream.closed:
                     return
@@ -277,6 +333,7 @@ class TrackStreams:
                 await asyncio.sleep(delay)
                 if stream.pending is None:  # cannot happen (only this task takes it), but be safe
                     continue
+                await self._take_new_map(channel, stream)  # one that came during the wait
             stream.bucket.take()
             (seq, data, arrived), stream.pending = stream.pending, None
             dropped, stream.dropped = stream.dropped, 0
@@ -347,6 +404,21 @@ async def _parse_config(channel: TrackChannel, text: str) -> TrackConfig | None:
     except ValidationError as exc:
         await _error(channel, "bad_config", error_summary(exc.errors(include_url=False, include_input=False)))
         return None
+
+
+def _hello(context: TrackingContext, reason: TrackHelloReason) -> TrackHello:
+    return TrackHello(environment_id=context.environment_id, camera=context.camera_model,
+                      targets=len(context.discs), map_frame=context.map_frame, reason=reason)
+
+
+def _reason(current: TrackingContext, new: TrackingContext) -> TrackHelloReason | None:
+    """Why a connection on `current` must switch to `new`, or None when they are the same
+    map and classifier (another object for the same version is no change)."""
+    if new.map_version != current.map_version:
+        return "map_changed"
+    if new.detector_key != current.detector_key:
+        return "classifier_changed"
+    return None
 
 
 async def _error(channel: TrackChannel, code: TrackErrorCode, message: str, seq: int | None = None) -> None:

@@ -1,7 +1,8 @@
 """Tracking: per frame, detect targets and compute the camera pose from the map.
 
 An environment's map and detector are loaded once and shared by every client; a new
-map (survey, import) is picked up by the next connection or ``locate`` call.
+map (survey, import, alignment) is picked up by the next connection or ``locate`` call,
+and by open /track connections, which ask for the context every ``map_poll_s``.
 
 A /track connection also has a memory (`TrackState`): its last two poses predict where
 the map's targets appear in the next frame, and only regions around them are searched
@@ -24,10 +25,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from datetime import datetime
 from typing import Literal
 
 import numpy as np
 from numba.core import event as numba_event
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.detection import Detection, Detector, warm_up
@@ -59,6 +62,7 @@ from app.schemas import (
     ScanReason,
     TrackConfig,
 )
+from app.models import SurveyMap
 from app.services import classifiers, environments, images
 from app.services.detection import DetectorCache, DetectorKey
 from app.services.errors import NoMap
@@ -337,15 +341,22 @@ class TrackingService:
         when it has no map yet."""
         with self.sessions() as session:
             environment = environments.get_row(session, environment_id)
-            stored = environments.stored_map(session, environment_id)
-            if stored is None:
+            # The map's version alone first: open connections ask every map_poll_s, and the
+            # document is read only when it changed.
+            current = session.execute(select(SurveyMap.id, SurveyMap.updated_at)
+                                      .where(SurveyMap.environment_id == environment_id)).one_or_none()
+            if current is None:
                 raise NoMap(environment_id)
-            version = f"{stored.id}:{stored.updated_at.isoformat()}"
+            version = _map_version(current.id, current.updated_at)
             detector_key = (classifiers.for_environment(session, environment), environment.marker_family)
             with self._lock:
                 cached = self._contexts.get(environment_id)
             if cached is not None and cached.map_version == version and cached.detector_key == detector_key:
                 return cached
+            stored = environments.stored_map(session, environment_id)
+            if stored is None:  # deleted since
+                raise NoMap(environment_id)
+            version = _map_version(stored.id, stored.updated_at)  # the document's own (it may be newer)
             document = MapDocument.model_validate(stored.document)
             context = TrackingContext(
                 environment_id=environment_id,
@@ -451,6 +462,11 @@ class TrackingService:
             scan="full" if regions is None else "regions",
             scan_reason=reason,  # type: ignore[arg-type]
         )
+
+
+def _map_version(map_id: int, updated_at: datetime) -> str:
+    """A stored map's version: a new one on every change, whichever process made it."""
+    return f"{map_id}:{updated_at.isoformat()}"
 
 
 def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region] | None, context: TrackingContext,

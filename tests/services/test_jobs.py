@@ -64,6 +64,11 @@ def test_cancel_stops_a_running_job(client: TestClient) -> None:
     assert body["status"] == "cancelled" and body["result"] is None
 
 
+def test_a_result_json_cannot_carry_fails_the_job_on_every_engine(client: TestClient) -> None:
+    body = wait_for_job(client, _submit(client, "nan_result", NoParams()), timeout=60, poll=0.1)
+    assert body["status"] == "failed" and "NaN" in body["error"] and body["result"] is None
+
+
 def test_unknown_job_is_404(client: TestClient) -> None:
     assert client.get("/jobs/nope").status_code == 404
     assert client.delete("/jobs/nope").status_code == 404

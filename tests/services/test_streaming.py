@@ -6,15 +6,7 @@ from __future__ import annotations
 import time
 
 from app.schemas import TrackCloseCode, TrackRefusal
-from app.services.streaming import ConnectionSlots, Refused, TokenBucket
-
-
-def test_connection_slots_refuse_beyond_the_limit_and_free_on_release() -> None:
-    slots = ConnectionSlots(2)
-    assert slots.acquire() and slots.acquire()
-    assert not slots.acquire() and slots.open == 2
-    slots.release()
-    assert slots.acquire() and slots.open == 2
+from app.services.streaming import Refused, TokenBucket
 
 
 def test_token_bucket_allows_a_burst_then_the_rate() -> None:

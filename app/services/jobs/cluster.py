@@ -179,11 +179,38 @@ def run_scheduler(settings: Settings, host: str, port: int) -> None:
         asyncio.run(serve())
 
 
-def run_workers(scheduler: str, n_workers: int, nthreads: int) -> None:
-    """Run `n_workers` worker processes for `scheduler` until interrupted (`fidotrack
-    worker`), each taking one job at a time; distributed's own worker command does the
-    supervising (restarts, signals)."""
-    from distributed.cli.dask_worker import main
+#: How long `fidotrack worker` waits before it starts its workers again after they
+#: stopped on their own (their scheduler went away).
+WORKER_RESTART_S = 2.0
 
-    main([scheduler, "--nworkers", str(n_workers), "--nthreads", str(nthreads), "--resources",
-          f"{JOB_RESOURCE}=1", "--no-dashboard", "--preload", __name__], standalone_mode=True)
+
+def run_workers(scheduler: str, n_workers: int, nthreads: int) -> int:
+    """Run `n_workers` worker processes for `scheduler` until interrupted (`fidotrack
+    worker`), each taking one job at a time. distributed's own worker command supervises
+    them (restarts, signals); it ends when its scheduler goes away, so it is started
+    again here, to wait for the scheduler's return (workers of a restarted scheduler
+    register with it again)."""
+    import subprocess
+    import time
+
+    command = [sys.executable, "-m", "distributed.cli.dask_worker", scheduler, "--nworkers", str(n_workers),
+               "--nthreads", str(nthreads), "--resources", f"{JOB_RESOURCE}=1", "--no-dashboard",
+               "--preload", __name__]
+    stopping: list[int] = []
+    process: subprocess.Popen[bytes] | None = None
+
+    def stop(signum: int, _frame: object) -> None:
+        stopping.append(signum)
+        if process is not None:
+            process.send_signal(signum)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, stop)
+    while True:
+        process = subprocess.Popen(command)
+        code = process.wait()
+        if stopping:
+            return 0
+        log.warning("job workers stopped (exit code %s): their scheduler went away; starting them again in "
+                    "%g s", code, WORKER_RESTART_S)
+        time.sleep(WORKER_RESTART_S)

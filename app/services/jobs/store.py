@@ -6,6 +6,7 @@ with the job's own (see `JobContext.finishing`).
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import uuid
@@ -178,6 +179,12 @@ def report_progress(session: Session, claim: Claim, stage: str, fraction: float,
 def finish(session: Session, claim: Claim, result: dict[str, Any]) -> bool:
     """Mark a running job succeeded with `result`, locking its row; the caller commits.
     False (nothing changed) when the job is no longer running this attempt."""
+    try:
+        # PostgreSQL's json refuses NaN and infinities, which SQLite would store: refused
+        # alike on every engine, before anything is written.
+        json.dumps(result, allow_nan=False)
+    except ValueError:
+        raise ValueError("the job's result holds NaN or an infinity, which JSON cannot carry") from None
     job = session.get(Job, claim.job_id, with_for_update=True)
     if job is None or job.status != JobStatus.RUNNING or job.attempt != claim.attempt:
         return False

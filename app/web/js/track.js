@@ -29,7 +29,8 @@ function drawTargets(overlay, reply) {
 
 export async function trackPage(view, environmentId) {
   const loaded = await loadMap(environmentId);
-  const state = { environmentId, running: false, sent: 0, replies: [], errors: [], encodeMs: [], hello: null };
+  const state = { environmentId, running: false, sent: 0, replies: [], errors: [], encodeMs: [], hello: null,
+                  mapChanges: 0 };
   window.fidotrack.track = state;
 
   const video = h("video", { autoplay: true, muted: true, playsinline: true, id: "camera" });
@@ -95,6 +96,22 @@ export async function trackPage(view, environmentId) {
   }
 
   let pending = null;  // the frame awaiting its reply: {seq, began, encodeMs}
+  let greeted = false;  // this connection's first hello came
+
+  /** A hello after the first: the environment's map (or classifier) changed on the server
+   * and the next replies are posed against the new one; the 3D view shows it too. */
+  async function onMapChange(hello) {
+    state.mapChanges += 1;
+    notify(hello.reason === "map_changed" ? "The map changed: tracking against the new map."
+      : "The classifier changed: tracking with the new one.");
+    if (hello.reason !== "map_changed") return;
+    try {
+      const fresh = await loadMap(environmentId);
+      viewer.setMap(fresh.map, fresh.discsUv);
+    } catch (error) {
+      notify(`The map changed but could not be loaded: ${error.message}`);
+    }
+  }
 
   async function sendNext() {
     if (!state.running || socket.readyState !== WebSocket.OPEN) return;
@@ -108,7 +125,13 @@ export async function trackPage(view, environmentId) {
 
   function onMessage(event) {
     const message = JSON.parse(event.data);
-    if (message.type === "hello") { state.hello = message; sendNext(); return; }
+    if (message.type === "hello") {
+      state.hello = message;
+      // The first starts the lock-step; a later one comes between two replies, while a
+      // frame is out (or being captured): its reply goes on with the lock-step.
+      if (!greeted) { greeted = true; sendNext(); } else { onMapChange(message); }
+      return;
+    }
     if (message.type === "frame") {
       const now = performance.now();
       const record = {
@@ -162,6 +185,8 @@ export async function trackPage(view, environmentId) {
         if (device.kind === "videoinput") deviceSelect.append(h("option", { value: device.deviceId }, device.label || device.deviceId));
       }
     }
+    greeted = false;
+    pending = null;
     socket = new WebSocket(trackUrl(environmentId));
     socket.binaryType = "arraybuffer";
     socket.onmessage = onMessage;
