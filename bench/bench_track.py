@@ -166,8 +166,13 @@ def _account(stats: RunStats, reply: dict, truth: list[Pose]) -> None:
 
 
 async def _lock_step(url: str, mode: str, frames: list[bytes], truth: list[Pose], name: str) -> RunStats:
-    stats = RunStats(name, mode)
-    ws = await _open(url, mode)
+    return await stream_lock_step(await _open(url, mode), frames, truth, RunStats(name, mode))
+
+
+async def stream_lock_step(ws: websockets.ClientConnection, frames: list[bytes], truth: list[Pose],
+                           stats: RunStats) -> RunStats:
+    """Send `frames` on an open connection, each when the reply to the last is in, into
+    `stats`; the connection is closed after."""
     try:
         start = time.perf_counter()
         for data in frames:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import sqlite3
 import subprocess
@@ -44,14 +43,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import websockets
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.geometry import Pose  # noqa: E402
 from app.sim import BENCH_ROOM, render_walk  # noqa: E402
-from bench.bench_track import RunStats, _account, _free_port, _http, _open  # noqa: E402
+from bench.bench_track import RunStats, _free_port, _http, _open, stream_lock_step  # noqa: E402
 
 #: The servers' environment.
 SERVER_ENV = {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1", "FIDOTRACK_LOG_LEVEL": "WARNING"}
@@ -88,26 +86,6 @@ def _holders(data_dir: Path) -> Counter[str]:
         return Counter(server for (server,) in db.execute("SELECT server FROM track_connections"))
 
 
-async def _stream(ws: websockets.ClientConnection, frames: list[bytes], truth: list[Pose],
-                  stats: RunStats) -> RunStats:
-    """bench_track's lock-step on a connection already open."""
-    try:
-        start = time.perf_counter()
-        for data in frames:
-            sent = time.perf_counter()
-            await ws.send(data)
-            stats.sent += 1
-            reply = json.loads(await ws.recv())
-            if reply["type"] != "frame":
-                raise RuntimeError(f"unexpected reply {reply}")
-            stats.latency_ms.append((time.perf_counter() - sent) * 1e3)
-            _account(stats, reply, truth)
-        stats.seconds = time.perf_counter() - start
-    finally:
-        await ws.close()
-    return stats
-
-
 async def _clients(url: str, frames: list[bytes], truth: list[Pose], clients: int, data_dir: Path,
                    name: str, spread_evenly: bool = False) -> tuple[list[RunStats], Counter[str]]:
     """`clients` lock-step clients at once; their stats and where they were held. With
@@ -123,7 +101,7 @@ async def _clients(url: str, frames: list[bytes], truth: list[Pose], clients: in
             await asyncio.sleep(0.02)
     else:
         raise RuntimeError("the clients never landed evenly on the workers")
-    runs = [_stream(ws, frames, truth, RunStats(f"{name} ({i})", "regions")) for i, ws in enumerate(sockets)]
+    runs = [stream_lock_step(ws, frames, truth, RunStats(f"{name} ({i})", "regions")) for i, ws in enumerate(sockets)]
     return list(await asyncio.gather(*runs)), spread
 
 
