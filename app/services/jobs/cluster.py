@@ -88,6 +88,11 @@ def local_cluster(settings: Settings):  # type: ignore[no-untyped-def]  (distrib
 # --- on a worker ---------------------------------------------------------------------------
 
 
+class EngineLost(RuntimeError):
+    """The job engine failed a job from under it: its scheduler gone, or the workers of
+    its pieces dying past the engine's retries."""
+
+
 @dataclass(frozen=True)
 class WorkerState:
     """A worker process's settings and database, made once per process."""
@@ -112,6 +117,11 @@ def dask_setup(worker: object) -> None:
     process that started it: a local cluster's workers with their server, a `fidotrack
     worker`'s with it, even when it is killed outright. Its job is then failed or run
     again as for any dead worker, rather than finished behind a restarted server's back."""
+    _die_with_parent()
+
+
+def _die_with_parent() -> None:
+    """Have this process killed when its parent dies (Linux; elsewhere nothing)."""
     if sys.platform == "linux":
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
@@ -141,22 +151,29 @@ def map_on_workers(function: Callable[[S, I], R], shared: S, items: Sequence[I],
             results.append(function(shared, item))
             done(finished, total)
         return results
-    from distributed import as_completed, worker_client
+    from concurrent.futures import CancelledError
 
-    # Leaves the worker's thread to the pieces while this task waits (it keeps its job slot).
-    with worker_client() as client:
-        sent = client.scatter(shared, broadcast=True, hash=False)
-        run = uuid.uuid4().hex[:8]
-        futures = client.map(function, [sent] * total, list(items), pure=False,
-                             key=[f"{job_id}-{run}-part-{k}" for k in range(total)])
-        index = {future.key: k for k, future in enumerate(futures)}
-        results: list[R | None] = [None] * total
-        try:
-            for finished, future in enumerate(as_completed(futures), 1):
-                results[index[future.key]] = future.result()
-                done(finished, total)
-        finally:
-            client.cancel(futures)  # those not run yet when `done` stopped the job
+    from distributed import KilledWorker, as_completed, worker_client
+    from distributed.comm.core import CommClosedError
+
+    results: list[R | None] = [None] * total
+    try:
+        # Leaves the worker's thread to the pieces while this task waits (it keeps its job slot).
+        with worker_client() as client:
+            sent = client.scatter(shared, broadcast=True, hash=False)
+            run = uuid.uuid4().hex[:8]
+            futures = client.map(function, [sent] * total, list(items), pure=False,
+                                 key=[f"{job_id}-{run}-part-{k}" for k in range(total)])
+            index = {future.key: k for k, future in enumerate(futures)}
+            try:
+                for finished, future in enumerate(as_completed(futures), 1):
+                    results[index[future.key]] = future.result()
+                    done(finished, total)
+            finally:
+                client.cancel(futures)  # those not run yet when `done` stopped the job
+    except (CommClosedError, KilledWorker, CancelledError, TimeoutError) as exc:
+        raise EngineLost(f"the job engine was lost while the job ran ({type(exc).__name__}): its scheduler or "
+                         "the workers running its pieces went away; submit it again") from exc
     return results  # type: ignore[return-value]
 
 
@@ -207,7 +224,8 @@ def run_workers(scheduler: str, n_workers: int, nthreads: int) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, stop)
     while True:
-        process = subprocess.Popen(command)
+        # (It dies with this process, as its workers die with it.)
+        process = subprocess.Popen(command, preexec_fn=_die_with_parent)
         code = process.wait()
         if stopping:
             return 0

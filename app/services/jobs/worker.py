@@ -12,7 +12,7 @@ from app.models import Job
 from app.schemas import JobStatus
 from app.services.errors import ServiceError
 from app.services.jobs import store
-from app.services.jobs.cluster import worker_state
+from app.services.jobs.cluster import EngineLost, worker_state
 from app.services.jobs.context import Cancelled, JobContext
 from app.services.jobs.registry import RegisteredHandler
 
@@ -85,6 +85,11 @@ def run_job(job_id: str, handler: RegisteredHandler) -> None:
         log.info("job succeeded")
     except Cancelled:
         log.info("job %s stopped: cancelled, or its attempt %d superseded", job_id, claim.attempt)
+    except EngineLost as exc:
+        log.warning("job %s: %s", job_id, exc)
+        with state.sessions() as session:
+            store.fail(session, [job_id], str(exc), stage="interrupted", statuses=(JobStatus.RUNNING,),
+                       attempt=claim.attempt)
     except Exception as exc:  # noqa: BLE001  (any failure of the job is reported on the job)
         log.exception("job %s failed", job_id)
         with state.sessions() as session:
