@@ -651,5 +651,5 @@ def test_no_reply_was_a_5xx_and_the_readme_states_the_tally(request: pytest.Fixt
         stated = re.search(r"\d+ requests \([^)]*\), none answered with a 5xx", README.read_text())
         assert stated is not None and stated.group(0) == tally_line(tally), (
             f"update the README's security section to: {tally_line(tally)}")
-    else:
+    elif TALLY["sqlite"]:  # (a run of one engine's variants alone has nothing to compare with)
         assert tally == TALLY["sqlite"], f"{engine} answered otherwise than SQLite: {tally} against {TALLY['sqlite']}"
