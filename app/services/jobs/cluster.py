@@ -71,6 +71,8 @@ def local_cluster(settings: Settings):  # type: ignore[no-untyped-def]  (distrib
     workers = {
         f"local-{k}": {"cls": Nanny, "options": {
             "nthreads": 1, "env": env, "dashboard": False, "preload": [__name__],
+            # (Their INFO lines, every start and stop, would fill the server's log.)
+            "silence_logs": logging.WARNING,
             "resources": {JOB_RESOURCE: 1} if k < settings.max_concurrent_jobs else {},
         }}
         for k in range(n_workers)
