@@ -84,7 +84,7 @@ class JobRunner:
         """The engine's client, connecting (or starting the local cluster) on first use;
         Busy (503) when the scheduler cannot be reached."""
         with self._lock:
-            if self._client is not None and self._cluster is None and self._client.status in ("closing", "closed"):
+            if self._client is not None and not self.owns_engine and self._client.status in ("closing", "closed"):
                 # It gave up reconnecting to a scheduler that was away (restarted): anew.
                 self._client = None
             if self._client is None:
