@@ -113,6 +113,18 @@ class Settings(BaseSettings):
         "How often an open /track connection checks whether its environment's map or classifier changed "
         "(a survey, an alignment, on any server process) and switches to the new one."))
 
+    # Job engine sockets and TLS.
+
+    # FreeD receivers a /track connection may name.
+
+    # Origins allowed to open /track and send state-changing requests.
+
+    # Slow clients: header and body timeouts, connections per address.
+
+    # Per-key and per-address limits on /track connections and request rate.
+
+    # Uploads in flight.
+
     @field_validator("database_url")
     @classmethod
     def _database_url(cls, url: str | None) -> str | None:
