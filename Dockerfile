@@ -11,8 +11,10 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     FIDOTRACK_DATA_DIR=/data \
     NUMBA_CACHE_DIR=/data/numba-cache
 
+# /engine-certs: where compose's engine-certs step writes the job engine's certificates
+# (a volume mounted there starts with this folder's owner).
 RUN useradd --create-home --uid 10001 fidotrack \
-    && mkdir -p /data && chown fidotrack:fidotrack /data
+    && mkdir -p /data /engine-certs && chown fidotrack:fidotrack /data /engine-certs
 
 WORKDIR /srv/fidotrack
 # Dependencies first so that code changes do not reinstall them.

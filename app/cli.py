@@ -51,7 +51,7 @@ def _settings(command: str) -> Settings | None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
+    from app import server
 
     settings = _settings("serve")
     if settings is None:
@@ -60,12 +60,11 @@ def _serve(args: argparse.Namespace) -> int:
         print("fidotrack serve: TLS needs both FIDOTRACK_TLS_CERTFILE and FIDOTRACK_TLS_KEYFILE", file=sys.stderr)
         return 2
     with _shared_job_cluster(settings, args.workers):
-        uvicorn.run(
-            "app.main:app",
+        server.run(
+            settings,
             host=args.host or settings.host,
             port=args.port or settings.port,
             workers=args.workers,
-            ws="websockets-sansio",  # ("websockets", the legacy implementation, is deprecated)
             # Frames are JPEGs: deflate cannot shrink them and costs ~10 ms per 200 KB frame.
             ws_per_message_deflate=False,
             # The transport's bound on one message; frames under it but over max_frame_bytes
@@ -89,33 +88,55 @@ def _shared_job_cluster(settings: Settings, workers: int) -> Iterator[None]:
     if workers <= 1 or settings.job_scheduler is not None:
         yield
         return
+    import tempfile
+
     from app.db import make_engine, make_sessionmaker
     from app.services.jobs import JobRunner
+    from app.services.jobs.cluster import write_tls_files
 
     engine = make_engine(settings.resolved_database_url, settings.sqlite_busy_timeout_ms)
     runner = JobRunner(settings, make_sessionmaker(engine))
-    address = runner.client().scheduler.address
-    os.environ["FIDOTRACK_JOB_SCHEDULER"] = address
-    try:
-        yield
-    finally:
-        os.environ.pop("FIDOTRACK_JOB_SCHEDULER", None)
-        runner.shutdown()  # fails the jobs it still held: they die with its workers
-        engine.dispose()
+    client = runner.client()
+    # The server processes connect with the cluster's own key, in a folder of this user's only.
+    with tempfile.TemporaryDirectory(prefix="fidotrack-engine-") as folder:
+        tls = write_tls_files(client.security, Path(folder))
+        variables = {"FIDOTRACK_JOB_SCHEDULER": client.scheduler.address,
+                     "FIDOTRACK_JOB_TLS_CA_FILE": str(tls.ca_file), "FIDOTRACK_JOB_TLS_CERT_FILE": str(tls.cert_file),
+                     "FIDOTRACK_JOB_TLS_KEY_FILE": str(tls.key_file)}
+        os.environ.update(variables)
+        try:
+            yield
+        finally:
+            for name in variables:
+                os.environ.pop(name, None)
+            runner.shutdown()  # fails the jobs it still held: they die with its workers
+            engine.dispose()
 
 
 def _scheduler(args: argparse.Namespace) -> int:
-    from app.services.jobs.cluster import run_scheduler
+    from app.services.jobs.cluster import EngineSetupError, engine_tls, insecure_reason, run_scheduler
 
     settings = _settings("scheduler")
     if settings is None:
         return 2
-    run_scheduler(settings, args.host, args.port)
+    try:
+        tls = engine_tls(settings)
+    except EngineSetupError as exc:
+        print(f"fidotrack scheduler: {exc}", file=sys.stderr)
+        return 2
+    refusal = insecure_reason("scheduler", [args.host])
+    if tls is None and refusal is not None and not args.insecure:
+        print(refusal, file=sys.stderr)
+        return 2
+    run_scheduler(settings, args.host, args.port, tls)
     return 0
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from app.services.jobs.cluster import run_workers
+    from urllib.parse import urlsplit
+
+    from app.services.jobs.cluster import (EngineSetupError, engine_security, engine_tls, insecure_reason,
+                                           is_loopback, run_workers)
 
     settings = _settings("worker")
     if settings is None:
@@ -125,7 +146,38 @@ def _worker(args: argparse.Namespace) -> int:
         print("fidotrack worker: give the scheduler's address (--scheduler or FIDOTRACK_JOB_SCHEDULER)",
               file=sys.stderr)
         return 2
-    return run_workers(scheduler, args.nworkers, args.nthreads)
+    try:
+        engine_security(settings, scheduler)  # (refuses tls:// without certificates, and the reverse)
+        tls = engine_tls(settings)
+    except EngineSetupError as exc:
+        print(f"fidotrack worker: {exc}", file=sys.stderr)
+        return 2
+    scheduler_host = urlsplit(scheduler).hostname or ""
+    if is_loopback(args.host) and not is_loopback(scheduler_host):
+        print(f"fidotrack worker: the scheduler at {scheduler} cannot reach workers on {args.host}: give --host, an "
+              "address of this machine that it and the other workers reach", file=sys.stderr)
+        return 2
+    # Its own sockets, and the scheduler it takes code from.
+    refusal = insecure_reason("worker", [args.host, scheduler_host])
+    if tls is None and refusal is not None and not args.insecure:
+        print(refusal, file=sys.stderr)
+        return 2
+    return run_workers(scheduler, args.nworkers, args.nthreads, args.host, tls)
+
+
+def _engine_certs(args: argparse.Namespace) -> int:
+    from app.services.jobs.certs import make_engine_certs
+
+    try:
+        issued = make_engine_certs(args.out, days=args.days, if_missing=args.if_missing)
+    except FileExistsError as exc:
+        print(f"fidotrack engine-certs: {exc}", file=sys.stderr)
+        return 2
+    print(f"authority: {issued.ca_file} (its key, {issued.ca_key_file}, only signs: keep it off the engine's machines)")
+    for role, (cert, key) in issued.certs.items():
+        print(f"{role}: FIDOTRACK_JOB_TLS_CA_FILE={issued.ca_file} FIDOTRACK_JOB_TLS_CERT_FILE={cert} "
+              f"FIDOTRACK_JOB_TLS_KEY_FILE={key}")
+    return 0
 
 
 def _markers(args: argparse.Namespace) -> int:
@@ -274,26 +326,39 @@ def _track(args: argparse.Namespace) -> int:
 def _map(args: argparse.Namespace) -> int:
     import json
 
-    from app.client import ApiError
+    from app.client import ApiError, MapChanged
 
+    def revision(client: Client) -> str:
+        return (client.map_etag(args.environment) or "unknown").strip('"')
+
+    # The revision as the commands print and take it (7); its ETag is quoted ("7").
+    if_match = args.if_match and (args.if_match if args.if_match.strip().startswith(('"', "W/", "*"))
+                                  else f'"{args.if_match.strip()}"')
     try:
         with _client(args) as client:
             if args.action == "restore":
-                document = client.restore_map(args.environment, args.version)
+                document = client.restore_map(args.environment, args.version, if_match=if_match)
                 print(f"environment {args.environment}: restored a map of {len(document.targets)} cards "
-                      f"({document.frame} frame)", file=sys.stderr)
+                      f"({document.frame} frame), now revision {revision(client)}", file=sys.stderr)
                 return 0
             if args.action == "versions":
                 for version in client.map_versions(args.environment):
                     print(f"{version.version:6d}  {version.frame:6s} {version.n_targets:4d} cards  replaced by "
-                          f"{version.replaced_by.value} at {version.replaced_at:%Y-%m-%d %H:%M:%S}")
+                          f"{version.replaced_by.value} at {version.replaced_at:%Y-%m-%d %H:%M:%S}"
+                          + (f"  (was revision {version.revision})" if version.revision is not None else ""))
                 return 0
             if args.action == "put":
-                document = client.put_map(args.environment, json.loads(Path(args.file).read_text()))
-                print(f"stored a map of {len(document.targets)} cards in environment {args.environment}",
-                      file=sys.stderr)
+                document = client.put_map(args.environment, json.loads(Path(args.file).read_text()), if_match=if_match)
+                print(f"stored a map of {len(document.targets)} cards in environment {args.environment}, now revision "
+                      f"{revision(client)}", file=sys.stderr)
                 return 0
             document = client.get_map(args.environment)
+            current = revision(client)
+    except MapChanged:
+        return _fail(f"map {args.action}", ValueError(
+            f"the map of environment {args.environment} is no longer at revision {args.if_match}: nothing was "
+            "changed. `fidotrack map get` it again, redo the change on it and give its revision, or leave "
+            "--if-match out to replace the map whatever it is now"))
     except (ApiError, OSError, ValueError) as error:
         return _fail(f"map {args.action}", error)
     if args.action == "get":
@@ -302,11 +367,14 @@ def _map(args: argparse.Namespace) -> int:
             Path(args.file).write_text(text)
         else:
             print(text)
+        print(f"environment {args.environment}: map at revision {current} (put it back with --if-match {current})",
+              file=sys.stderr)
         return 0
     camera = document.camera
     print(f"environment {args.environment}: {len(document.targets)} cards, frame {document.frame}, "
           f"camera {camera.width}x{camera.height} f={camera.K[0][0]:.1f} px"
-          + (f", survey RMS {document.rms_px:.2f} px" if document.rms_px is not None else ""))
+          + (f", survey RMS {document.rms_px:.2f} px" if document.rms_px is not None else "")
+          + f", revision {current}")
     print(f"{'card':>5} {'x':>8} {'y':>8} {'z':>8} {'std mm':>7} {'views':>5}")
     for target in sorted(document.targets, key=lambda t: t.id):
         centre = [sum(disc[k] for disc in target.discs) / len(target.discs) for k in range(3)]
@@ -453,18 +521,37 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--workers", type=int, default=1, help="server processes (default: %(default)s)")
     serve.set_defaults(run=_serve)
 
+    insecure_help = ("listen or connect off the loopback without TLS: whoever reaches the engine's ports can run "
+                     "code; only on a network that only the engine's machines reach")
     scheduler = commands.add_parser("scheduler", help="run the job engine's scheduler (for workers on other machines)")
-    scheduler.add_argument("--host", default="0.0.0.0", help="address to listen on (default: %(default)s)")
+    scheduler.add_argument("--host", default="127.0.0.1",
+                           help="address to listen on; off the loopback it needs the engine's TLS "
+                                "(FIDOTRACK_JOB_TLS_*) or --insecure (default: %(default)s)")
     scheduler.add_argument("--port", type=int, default=8786, help="port to listen on (default: %(default)s)")
+    scheduler.add_argument("--insecure", action="store_true", help=insecure_help)
     scheduler.set_defaults(run=_scheduler)
 
     worker = commands.add_parser("worker", help="run job workers (surveys, training) for a job scheduler")
-    worker.add_argument("--scheduler", help="the scheduler, tcp://host:port (default: FIDOTRACK_JOB_SCHEDULER)")
+    worker.add_argument("--scheduler", help="the scheduler, tcp://host:port, or tls://host:port with the engine's "
+                                            "TLS (default: FIDOTRACK_JOB_SCHEDULER)")
+    worker.add_argument("--host", default="127.0.0.1",
+                        help="address the workers listen on, which the scheduler and the other workers must reach; "
+                             "off the loopback it needs the engine's TLS or --insecure (default: %(default)s)")
     worker.add_argument("--nworkers", type=int, default=1,
                         help="worker processes; each runs one job at a time and pieces of others' "
                              "(default: %(default)s)")
     worker.add_argument("--nthreads", type=int, default=1, help="threads per worker process (default: %(default)s)")
+    worker.add_argument("--insecure", action="store_true", help=insecure_help)
     worker.set_defaults(run=_worker)
+
+    certs = commands.add_parser("engine-certs", help="make TLS certificates for the job engine: an authority and a "
+                                                     "certificate per role (scheduler, worker, web)")
+    certs.add_argument("--out", type=Path, required=True, help="the folder to write (made if missing; must not "
+                                                               "hold certificates already)")
+    certs.add_argument("--days", type=int, default=825, help="how long they are valid (default: %(default)s)")
+    certs.add_argument("--if-missing", action="store_true",
+                       help="leave a folder that already holds a full set as it is (for a start-up step)")
+    certs.set_defaults(run=_engine_certs)
 
     cards = commands.add_parser("markers", help="write printable marker cards as an A4 PDF")
     cards.add_argument("--ids", default="0-11", help='ids, e.g. "0-11" or "0,3,5-7"')
@@ -531,6 +618,9 @@ def build_parser() -> argparse.ArgumentParser:
     maps.add_argument("file", nargs="?", help="get: write here (default: standard output); put: read from here")
     maps.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
     maps.add_argument("--version", type=int, help="restore: the version to restore (from `map versions`)")
+    maps.add_argument("--if-match", metavar="REVISION",
+                      help="put, restore: only if the map is still at this revision (as `map get` and `map show` "
+                           "print it); refused, changing nothing, if it has changed since")
     on_service(maps)
     maps.set_defaults(run=_map)
 

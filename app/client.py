@@ -41,7 +41,7 @@ from app.schemas import (
     TrackHello,
 )
 
-__all__ = ["ApiError", "Client", "JobFailed", "TrackRefused", "encode_frame"]
+__all__ = ["ApiError", "Client", "JobFailed", "MapChanged", "TrackRefused", "encode_frame"]
 
 #: Job states after which a job never changes.
 FINISHED = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELLED})
@@ -56,6 +56,17 @@ class ApiError(Exception):
         super().__init__(f"{status}: {detail}")
         self.status = status
         self.detail = detail
+
+
+class MapChanged(ApiError):
+    """A map write refused (412) because the map changed since this client read it: read
+    it again (`Client.get_map`) and redo the change, or write with ``overwrite=True``."""
+
+    def __init__(self, environment_id: int, detail: str) -> None:
+        super().__init__(412, f"the map of environment {environment_id} changed since this client read it, so "
+                              f"nothing was written ({detail}); get_map() it again and redo the change on it, or "
+                              "pass overwrite=True to replace whatever it is now")
+        self.environment_id = environment_id
 
 
 class JobFailed(Exception):
@@ -118,6 +129,9 @@ class Client:
         self.api_key = api_key
         headers = {"X-API-Key": api_key} if api_key else {}
         self.http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+        # The ETag of each environment's map as this client last read or wrote it: its map
+        # writes are conditional on it (If-Match).
+        self._map_etags: dict[int, str] = {}
 
     def __enter__(self) -> Self:
         return self
@@ -184,31 +198,67 @@ class Client:
     def delete_environment(self, environment_id: int) -> None:
         """Delete an environment and its map."""
         self._request("DELETE", f"/environments/{environment_id}")
+        self._map_etags.pop(environment_id, None)
 
     def get_map(self, environment_id: int) -> MapDocument:
-        """The environment's map."""
-        return MapDocument.model_validate(self._json("GET", f"/environments/{environment_id}/map"))
+        """The environment's map; the client keeps its revision (`map_etag`) for the writes
+        that follow."""
+        return MapDocument.model_validate(self._map_request("GET", environment_id, "/map").json())
 
-    def put_map(self, environment_id: int, document: MapDocument | dict[str, Any]) -> MapDocument:
-        """Store a map (an import, or one surveyed elsewhere) as the environment's map."""
+    def map_etag(self, environment_id: int) -> str | None:
+        """The ETag of the environment's map as this client last read or wrote it (e.g.
+        ``'"7"'``), or None."""
+        return self._map_etags.get(environment_id)
+
+    def _map_request(self, method: str, environment_id: int, path: str, *, if_match: str | None = None,
+                     overwrite: bool = False, **kwargs: Any) -> httpx.Response:
+        """A request that reads or writes the environment's map. A write sends ``If-Match``:
+        `if_match` when given, else the ETag this client knows (none with `overwrite`), and
+        raises MapChanged when the map has changed since. The reply's ETag is kept."""
+        if method != "GET":
+            condition = if_match or (None if overwrite else self._map_etags.get(environment_id))
+            if condition is not None:
+                kwargs["headers"] = {**kwargs.get("headers", {}), "If-Match": condition}
+        try:
+            response = self._request(method, f"/environments/{environment_id}{path}", **kwargs)
+        except ApiError as error:
+            if error.status == 412:
+                raise MapChanged(environment_id, error.detail) from None
+            raise
+        if "ETag" in response.headers:
+            self._map_etags[environment_id] = response.headers["ETag"]
+        return response
+
+    def put_map(self, environment_id: int, document: MapDocument | dict[str, Any], *, if_match: str | None = None,
+                overwrite: bool = False) -> MapDocument:
+        """Store a map (an import, or one surveyed elsewhere) as the environment's map.
+
+        Only over the map this client last read or wrote, if it did (``If-Match``; else
+        `MapChanged`), or over the map at `if_match` (an ETag); `overwrite` replaces
+        whatever map there is."""
         body = document.model_dump(mode="json") if isinstance(document, MapDocument) else document
-        return MapDocument.model_validate(self._json("PUT", f"/environments/{environment_id}/map", json=body))
+        return MapDocument.model_validate(self._map_request("PUT", environment_id, "/map", json=body,
+                                                            if_match=if_match, overwrite=overwrite).json())
 
     def map_versions(self, environment_id: int) -> list[MapVersionOut]:
         """The maps earlier changes replaced, the newest first."""
         return [MapVersionOut.model_validate(v) for v in self._json("GET", f"/environments/{environment_id}/map/versions")]
 
-    def restore_map(self, environment_id: int, version: int | None = None) -> MapDocument:
-        """Make an earlier map current again: the newest, or `version`."""
+    def restore_map(self, environment_id: int, version: int | None = None, *, if_match: str | None = None,
+                    overwrite: bool = False) -> MapDocument:
+        """Make an earlier map current again: the newest, or `version` (conditional as
+        `put_map`)."""
         body = {"version": version} if version is not None else {}
-        return MapDocument.model_validate(self._json("POST", f"/environments/{environment_id}/map/restore",
-                                                     json=body))
+        return MapDocument.model_validate(self._map_request("POST", environment_id, "/map/restore", json=body,
+                                                            if_match=if_match, overwrite=overwrite).json())
 
-    def align(self, environment_id: int, request: AlignmentRequest | dict[str, Any]) -> AlignmentResult:
-        """Move the map into world coordinates (known points, or an origin card)."""
+    def align(self, environment_id: int, request: AlignmentRequest | dict[str, Any], *, if_match: str | None = None,
+              overwrite: bool = False) -> AlignmentResult:
+        """Move the map into world coordinates (known points, or an origin card); conditional
+        as `put_map`."""
         body = request.model_dump(mode="json", exclude_none=True) if isinstance(request, AlignmentRequest) else request
-        return AlignmentResult.model_validate(self._json("POST", f"/environments/{environment_id}/alignment",
-                                                         json=body))
+        return AlignmentResult.model_validate(self._map_request("POST", environment_id, "/alignment", json=body,
+                                                                if_match=if_match, overwrite=overwrite).json())
 
     def freed_output(self, environment_id: int) -> FreeDOutput | None:
         """The environment's FreeD output, or None without one."""
@@ -305,6 +355,8 @@ class Client:
         job = self.wait(self.start_survey(environment_id, video, **options).id, progress)
         if job.status != JobStatus.SUCCEEDED:
             raise JobFailed(job)
+        # This client replaced the map it knew itself: its writes no longer depend on that one.
+        self._map_etags.pop(environment_id, None)
         return job
 
     # -- tracking ----------------------------------------------------------------------

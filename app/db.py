@@ -14,6 +14,7 @@ import logging
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 from alembic import command
 from alembic.config import Config
@@ -23,6 +24,9 @@ from sqlalchemy import Connection, Engine, MetaData, create_engine, event, text
 from sqlalchemy.orm import DeclarativeBase, sessionmaker, Session
 
 log = logging.getLogger(__name__)
+
+#: A model class.
+M = TypeVar("M", bound="Base")
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 
@@ -87,6 +91,18 @@ def lock_for_writing(session: Session, table: str) -> None:
     elif connection.dialect.name == "postgresql":
         # Conflicts with itself and with writers (ROW EXCLUSIVE), not with readers.
         connection.exec_driver_sql(f"LOCK TABLE {table} IN SHARE ROW EXCLUSIVE MODE")
+
+
+def lock_row_for_writing(session: Session, model: type[M], key: object) -> M | None:
+    """The row of `model` with primary key `key` (None if there is none), read afresh and
+    held by the session's transaction until it ends, so that what the transaction reads
+    and writes on its account cannot interleave with another writer's; readers go on. On
+    SQLite the database's write lock (as `lock_for_writing`), on PostgreSQL that row's
+    (``SELECT ... FOR UPDATE``: writers of other rows go on). Call it before the
+    transaction's first statement."""
+    if session.connection().dialect.name == "sqlite":
+        lock_for_writing(session, model.__tablename__)
+    return session.get(model, key, with_for_update=True, populate_existing=True)
 
 
 def alembic_config(connection: Connection | None = None) -> Config:

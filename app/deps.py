@@ -21,6 +21,7 @@ from app.services.jobs import JobRunner
 from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.streaming import TrackStreams
+from app.services.uploads import UploadsInFlight
 from app.settings import Settings
 
 
@@ -61,6 +62,10 @@ async def get_track_streams(connection: HTTPConnection) -> TrackStreams:
     return connection.app.state.track_streams
 
 
+async def get_uploads_in_flight(connection: HTTPConnection) -> UploadsInFlight:
+    return connection.app.state.uploads_in_flight
+
+
 _ROW_ID = re.compile(r"[1-9][0-9]{0,17}")
 
 
@@ -85,3 +90,5 @@ ImageMemoryDep = Annotated[MemoryBudget, Depends(get_image_memory)]
 #: The processes of /detect and /locate (apart from /track's threads).
 ImageWorkersDep = Annotated[ImageWorkers, Depends(get_image_workers)]
 TrackStreamsDep = Annotated[TrackStreams, Depends(get_track_streams)]
+#: The bytes of the uploads this process is reading.
+UploadsInFlightDep = Annotated[UploadsInFlight, Depends(get_uploads_in_flight)]

@@ -20,7 +20,8 @@ from fastapi_offline import FastAPIOffline
 
 from app import __version__, logs
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
-from app.middleware import DOCS_ASSETS_URL, WEB_APP_URL, ApiKeyGate, BodyLimit, RequestObserver
+from app.middleware import (DOCS_ASSETS_URL, WEB_APP_URL, ApiKeyGate, BodyLimit, ClientLimits, OriginGate,
+                            RequestObserver, SecurityHeaders, web_app_csp)
 from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.schemas import MAX_LISTED_ERRORS, complete_openapi, error_summary
@@ -31,7 +32,9 @@ from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget, limit_compute_threads
 from app.services.jobs import JobRunner
 from app.services.keys import VerifiedKeys
+from app.services.uploads import UploadsInFlight
 from app.services.metrics import Metrics
+from app.services.rate_limits import ClientRates
 from app.services.streaming import TrackStreams
 from app.services.tracking import DetectorKernels, TrackingService
 from app.settings import Settings
@@ -75,7 +78,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
                                          memory=app.state.image_memory)
     # Frames of all clients share a few worker threads (OpenCV releases the GIL).
     app.state.track_streams = TrackStreams(app.state.tracking, settings=settings,
-                                           limiter=anyio.CapacityLimiter(settings.track_threads))
+                                           limiter=anyio.CapacityLimiter(settings.track_threads),
+                                           verified_keys=app.state.verified_keys)
     await anyio.to_thread.run_sync(kernels.wait_unless_compiling, KERNELS_LOAD_WAIT_S)
     try:
         yield
@@ -105,6 +109,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.verified_keys = VerifiedKeys()
+    app.state.uploads_in_flight = UploadsInFlight(settings.max_upload_bytes_in_flight)
 
     @app.exception_handler(ServiceError)
     async def _service_error(_request: Request, exc: ServiceError) -> JSONResponse:
@@ -118,12 +123,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": error_summary(errors), "errors": errors[:MAX_LISTED_ERRORS]},
                             status_code=422)
 
-    # Innermost: every request passes the API-key gate (a no-op unless settings.api_keys).
+    # Innermost: the request rates per API key, once the gate below has verified the key.
+    rates = ClientRates(settings)
+    app.add_middleware(ClientLimits, rates=rates, by="key", metrics=app.state.metrics)
+    # Every request passes the API-key gate (a no-op unless settings.api_keys).
     app.add_middleware(ApiKeyGate)
+    # Pages of other origins may not open /track or change anything (before the key's lookup).
+    app.add_middleware(OriginGate, allowed=settings.allowed_origins)
     app.add_middleware(RequestObserver, metrics=app.state.metrics)
-    # Outermost: a body over the limit is refused before any of it is read.
+    # A body over the limit is refused before any of it is read.
     app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes, image_limit=settings.max_image_bytes,
                        json_limit=settings.max_json_bytes)
+    # The request rates per client address, before anything that costs: a flood is refused cheaply.
+    app.add_middleware(ClientLimits, rates=rates, by="address", metrics=app.state.metrics)
+    # Around the others, so that their refusals carry the headers too.
+    app.add_middleware(SecurityHeaders, csp=web_app_csp((WEB_DIR / "index.html").read_text()))
 
     app.include_router(health.router)
     app.include_router(environments.router)

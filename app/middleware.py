@@ -8,23 +8,33 @@ its body is read (a dependency would run only after FastAPI has read and parsed 
 Content-Length over the limit is refused with 413 before a byte of the body is read; a
 body without one (chunked) is counted as it streams in and refused as soon as it passes
 the limit, so nothing ever holds more than the limit in memory or on disk.
+
+`ClientLimits`: each client address's and API key's request rate and /track
+connection-open rate (token buckets), refused with 429 and ``Retry-After`` before the
+key is looked up or the body read.
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import logging
 import re
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
-from typing import Any
+from typing import Any, Literal
 
 import anyio
 from fastapi import HTTPException
 from starlette.requests import HTTPConnection
 
 from app import logs
+from app.schemas import TrackRefusal
 from app.services import keys
+from app.services.metrics import Metrics
+from app.services.rate_limits import ClientRates, RateRefusal, client_address
+from app.settings import normalize_origin
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -172,6 +182,8 @@ class ApiKeyGate:
             if principal is not None and key is not None:
                 state.verified_keys.remember(key, principal)
         if principal is not None and principal.allows(needed):
+            if key is not None:  # (always: a principal comes from a key) for the limits per key, and /track
+                scope.setdefault("state", {})[keys.CREDENTIAL_STATE] = keys.Credential(key, principal)
             await self.app(scope, receive, send)
             return
         reason = ("a valid API key is required (header X-API-Key)" if principal is None
@@ -232,3 +244,195 @@ class RequestObserver:
                                                        "status": status, "ms": round(elapsed * 1e3, 2),
                                                        "client": client[0] if client else None}})
             logs.request_id.reset(token)
+
+
+# --- Origins --------------------------------------------------------------------------
+
+#: Methods that change state, which pages of other origins may not send.
+STATE_CHANGING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+#: ``Sec-Fetch-Site`` of a browser's request from a page of another origin.
+OTHER_ORIGIN_FETCHES = frozenset({b"cross-site", b"same-site"})
+#: What `OriginGate` takes from any origin.
+ANY_ORIGIN = "*"
+
+
+def own_origin(scope: Scope) -> str | None:
+    """The origin a browser gives the service's own pages: the request's scheme (https
+    behind a proxy that says so in ``X-Forwarded-Proto``) and its ``Host`` header."""
+    host = dict(scope.get("headers") or []).get(b"host")
+    if not host:
+        return None
+    scheme = "https" if scope.get("scheme") in ("https", "wss") else "http"
+    try:
+        return normalize_origin(f"{scheme}://{host.decode('latin-1')}")
+    except ValueError:
+        return None
+
+
+class OriginGate:
+    """Pages of other origins may neither open WebSockets (``/track``) nor send POST,
+    PUT, PATCH or DELETE requests. A browser names a page's origin in ``Origin``: it must
+    be the service's own (`own_origin`) or one of `allowed` (``*``: any). A request
+    without ``Origin`` (curl, the Python client) passes, unless the browser's
+    ``Sec-Fetch-Site`` says it comes from another site. HTTP: 403 before any of the body
+    is read. WebSocket: accepted, then closed with code 1008 and the reason, as
+    `ApiKeyGate` does."""
+
+    def __init__(self, app: ASGIApp, allowed: tuple[str, ...]) -> None:
+        self.app = app
+        self.any = ANY_ORIGIN in allowed
+        self.allowed = frozenset(allowed) - {ANY_ORIGIN}
+        self.log = logging.getLogger("app.origins")
+
+    def refusal(self, scope: Scope) -> str | None:
+        """Why the request may not pass, or None."""
+        headers = dict(scope.get("headers") or [])
+        raw = headers.get(b"origin")
+        if raw is None:
+            if headers.get(b"sec-fetch-site", b"").lower() in OTHER_ORIGIN_FETCHES:
+                return "a page of another site sent this without an Origin: refused"
+            return None
+        origin = raw.decode("latin-1").strip()
+        try:
+            origin = normalize_origin(origin)
+        except ValueError:
+            pass  # "null" (sandboxed frames, local files) or garbage: matches nothing
+        if origin in self.allowed or origin == own_origin(scope):
+            return None
+        # Short enough for a WebSocket close reason (at most 123 bytes).
+        shown = origin[:60].encode("ascii", "replace").decode()
+        return f"origin {shown!r} is not allowed: see the allowed_origins setting"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (self.any or scope["type"] not in ("http", "websocket")
+                or (scope["type"] == "http" and scope["method"] not in STATE_CHANGING_METHODS)):
+            await self.app(scope, receive, send)
+            return
+        reason = self.refusal(scope)
+        if reason is None:
+            await self.app(scope, receive, send)
+            return
+        self.log.info("origin refused", extra={"fields": {"path": scope.get("path"), "reason": reason}})
+        if scope["type"] == "websocket":
+            await receive()  # the client's connect
+            await send({"type": "websocket.accept"})
+            await send({"type": "websocket.close", "code": WS_POLICY_VIOLATION, "reason": reason})
+        else:
+            await _reply(send, 403, reason)
+
+
+# --- Security headers -----------------------------------------------------------------
+
+#: On every reply: no type sniffing, no framing (clickjacking), no Referer to other sites.
+COMMON_SECURITY_HEADERS = ((b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY"),
+                           (b"referrer-policy", b"no-referrer"))
+#: Inline ``<script>`` elements of a page (the import map of the web app's page).
+INLINE_SCRIPT = re.compile(r"<script\b(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.DOTALL | re.IGNORECASE)
+
+
+def web_app_csp(index_html: str) -> str:
+    """The web app's Content-Security-Policy: scripts, styles, fonts and connections
+    (``/track``'s ws and wss included) from the service only, inline scripts only as
+    hashed from its page (its import map), images also from ``data:`` and ``blob:``, no
+    plugins, no framing."""
+    hashes = " ".join("'sha256-" + base64.b64encode(hashlib.sha256(script.encode()).digest()).decode() + "'"
+                      for script in INLINE_SCRIPT.findall(index_html))
+    return ("default-src 'self'; " + f"script-src 'self' {hashes}".rstrip() + "; style-src 'self'; "
+            "img-src 'self' data: blob:; media-src 'self' blob: mediastream:; connect-src 'self'; "
+            "object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+
+
+class SecurityHeaders:
+    """`COMMON_SECURITY_HEADERS` on every HTTP reply, and `csp` on the web app's (under
+    `WEB_APP_URL`). ``/docs`` and ``/redoc`` get no policy: their pages run inline scripts."""
+
+    def __init__(self, app: ASGIApp, csp: str) -> None:
+        self.app = app
+        self.web_app_headers = (*COMMON_SECURITY_HEADERS, (b"content-security-policy", csp.encode()))
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        path = scope.get("path", "")
+        added = (self.web_app_headers if path == WEB_APP_URL or path.startswith(WEB_APP_URL + "/")
+                 else COMMON_SECURITY_HEADERS)
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                names = {name.lower() for name, _ in message.get("headers", [])}
+                message["headers"] = [*message.get("headers", []), *(h for h in added if h[0] not in names)]
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+# --- Request rates per client ---------------------------------------------------------
+
+#: Paths no client limit applies to: orchestrators' probes come often, from one address.
+UNLIMITED_PATHS = frozenset({"/livez", "/readyz"})
+#: At most one log line about refused requests per this many seconds (per middleware).
+RATE_REFUSAL_LOG_S = 10.0
+
+
+class ClientLimits:
+    """The HTTP request rate and the /track connection-open rate of each client
+    (`ClientRates`): with ``by="address"``, per client address, outside everything that
+    costs (the key's lookup in the database, the body, the access log); with ``by="key"``,
+    per API key, inside `ApiKeyGate`, which verified the key. Over a rate: HTTP 429 with
+    ``Retry-After`` (seconds) and the reason, before any of the body is read; WebSocket:
+    accepted, then a `TrackRefusal` ``too_many_requests`` with ``retry_after_s``, and close
+    code 1013. /livez and /readyz are never limited."""
+
+    def __init__(self, app: ASGIApp, rates: ClientRates, by: Literal["address", "key"],
+                 metrics: Metrics | None = None) -> None:
+        self.app = app
+        self.rates = rates
+        self.by = by
+        self.metrics = metrics
+        self.log = logging.getLogger("app.limits")
+        self.refused_since_log = 0
+        self.logged_at = -1e9
+
+    def refusal(self, scope: Scope) -> RateRefusal | None:
+        kind = scope["type"]
+        if self.by == "address":
+            client = scope.get("client")
+            address = client_address(client[0] if client else None)
+            return None if address is None else self.rates.admit_address(kind, address)
+        credential = scope.get("state", {}).get(keys.CREDENTIAL_STATE)
+        return None if credential is None else self.rates.admit_key(kind, credential.principal.key_id)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket") or scope["path"] in UNLIMITED_PATHS:
+            await self.app(scope, receive, send)
+            return
+        refused = self.refusal(scope)
+        if refused is None:
+            await self.app(scope, receive, send)
+            return
+        self._count(refused, scope)
+        if scope["type"] == "websocket":
+            refusal = TrackRefusal(code="too_many_requests", message=refused.message,
+                                   retry_after_s=round(refused.retry_after_s, 3))
+            await receive()  # the client's connect
+            await send({"type": "websocket.accept"})
+            await send({"type": "websocket.send", "text": refusal.model_dump_json()})
+            await send({"type": "websocket.close", "code": refusal.close_code, "reason": refusal.message[:120]})
+        else:
+            await _reply(send, 429, refused.message, [(b"retry-after", refused.retry_after_header)])
+
+    def _count(self, refused: RateRefusal, scope: Scope) -> None:
+        """Metrics for every refusal, a log line now and then: a flood must not write a
+        line per request."""
+        if self.metrics is not None:
+            self.metrics.refused(refused.limit)
+        self.refused_since_log += 1
+        now = time.monotonic()
+        if now - self.logged_at >= RATE_REFUSAL_LOG_S:
+            client = scope.get("client")
+            self.log.warning("requests refused over a client's rate", extra={"fields": {
+                "limit": str(refused.limit), "refused": self.refused_since_log,
+                "client": client[0] if client else None}})
+            self.logged_at, self.refused_since_log = now, 0
+

@@ -60,6 +60,7 @@ class SurveyMap(Base):
 
     One per environment; a new survey or import replaces it in one transaction.
     ``document`` is the map document (``app.schemas.MapDocument``), validated before it is stored.
+    ``revision`` grows by one with every change (the map's ``ETag``; ``If-Match`` names it).
     """
 
     __tablename__ = "maps"
@@ -73,6 +74,7 @@ class SurveyMap(Base):
     rms_px: Mapped[float | None] = mapped_column(Float, nullable=True)
     survey_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
+    revision: Mapped[int] = mapped_column(Integer, default=1)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(
         DateTime(timezone=True), default=utcnow, onupdate=utcnow
@@ -95,6 +97,8 @@ class MapVersion(Base):
     n_targets: Mapped[int] = mapped_column(Integer)
     survey_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
+    # The revision the map had; None for maps kept before revisions were counted.
+    revision: Mapped[int | None] = mapped_column(Integer, nullable=True)
     replaced_by: Mapped[str] = mapped_column(String(16))
     replaced_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
@@ -193,6 +197,9 @@ class TrackConnection(Base):
     environment_id: Mapped[int] = mapped_column(ForeignKey("environments.id", ondelete="CASCADE"), index=True)
     opened_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     seen_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
+    # Who holds it, for the limits per client address and per API key (None: not known).
+    client_address: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
+    key_id: Mapped[int | None] = mapped_column(Integer, nullable=True, index=True)
 
 
 class ApiKey(Base):

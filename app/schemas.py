@@ -4,14 +4,16 @@ configuration pages of the documentation are generated from it)."""
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import re
 import unicodedata
 from datetime import UTC, datetime
 from enum import IntEnum, StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator,
-                      model_validator)
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, StringConstraints, ValidationInfo,
+                      field_validator, model_validator)
 from pydantic.json_schema import SkipJsonSchema, models_json_schema
 
 #: Most keys a JSON object in a request may have: twice the fields of the largest request
@@ -333,12 +335,15 @@ class MapVersionOut(BaseModel):
 
     model_config = ConfigDict(json_schema_extra=_examples(
         {"version": 3, "frame": "survey", "n_targets": 24, "survey_job_id": "5f0c2d9e8b7a4c1d9e2f3a4b5c6d7e8f",
-         "replaced_by": "alignment", "replaced_at": "2026-11-27T10:15:00Z"}))
+         "revision": 4, "replaced_by": "alignment", "replaced_at": "2026-11-27T10:15:00Z"}))
 
     version: int = Field(description="The version's number: give it to POST .../map/restore to restore it.")
     frame: Literal["survey", "world"] = Field(description="The frame of that map: the survey's own, or aligned.")
     n_targets: int = Field(description="Targets in that map.")
     survey_job_id: str | None = Field(description="The survey job that made that map, or null.")
+    revision: int | None = Field(None, description=(
+        "The revision that map had (its ETag while it was the map); null for a map kept by a service that did not "
+        "count revisions."))
     replaced_by: MapChange = Field(description="The change that replaced it.")
     replaced_at: datetime = Field(description="When it was replaced.")
 
@@ -746,7 +751,10 @@ ScanReason = Literal["first", "regions", "periodic", "lost", "fallback", "wide",
 TrackErrorCode = Literal["bad_message", "bad_config", "bad_frame", "frame_too_large", "rate_limited",
                          "freed", "internal_error"]
 #: Codes of `TrackRefusal` (the connection is closed).
-TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections", "idle"]
+TrackRefusalCode = Literal["bad_request", "unknown_environment", "no_map", "too_many_connections", "idle",
+                           "client_connections", "too_many_requests", "key_revoked"]
+#: Refusals after which the client may try again later (close code 1013).
+TRY_AGAIN_REFUSALS = frozenset({"too_many_connections", "client_connections", "too_many_requests"})
 
 
 class TrackCloseCode(IntEnum):
@@ -755,7 +763,7 @@ class TrackCloseCode(IntEnum):
     GOING_AWAY = 1001  # the client sent nothing for ``track_idle_timeout_s``
     POLICY_VIOLATION = 1008  # a refused request: bad query, unknown environment, no map, missing API key
     SERVER_ERROR = 1011  # the connection failed on the server's side
-    TRY_AGAIN_LATER = 1013  # the server already tracks ``max_track_connections`` connections
+    TRY_AGAIN_LATER = 1013  # the service, or this client, is at a limit (`TRY_AGAIN_REFUSALS`)
 
 
 #: Longest prediction a /track client may ask for, ms: beyond a few frames a constant
@@ -778,8 +786,34 @@ class Smoothing(BaseModel):
                                                                  "speed, Hz per rad/s.")
 
 
+#: One label of a host name (RFC 1123): letters, digits and inner hyphens, 1-63 characters.
+_HOST_LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+#: A last label the system's resolver reads as a number ("127.1", "0x7f000001"): the
+#: address it stands for would be checked only once resolved, so such names are refused.
+_NUMERIC_LABEL = re.compile(r"[0-9]+|0[xX][0-9A-Fa-f]*")
+
+
+def _host_name(value: str) -> str:
+    try:
+        address = ipaddress.ip_address(value)
+    except ValueError:
+        address = None
+    if address is not None:
+        if "%" in value:
+            raise ValueError("must be an IP address without a zone (%...)")
+        return value
+    labels = value.split(".")
+    if (len(value) > 253 or not all(_HOST_LABEL.fullmatch(label) for label in labels)
+            or _NUMERIC_LABEL.fullmatch(labels[-1])):
+        raise ValueError("must be an IP address (v4, or v6 without brackets) or a host name: dot-separated "
+                         "labels of 1-63 letters, digits and inner hyphens (RFC 1123), not ending in a number")
+    return value
+
+
 #: A host name or an IP address (v4, or v6 without brackets), as a UDP receiver is named.
-HostName = Annotated[str, Field(min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$")]
+#: Whitespace is refused, not stripped: " x" is not taken for "x".
+HostName = Annotated[str, StringConstraints(strip_whitespace=False, min_length=1, max_length=253),
+                     AfterValidator(_host_name)]
 
 
 class FreeDOutput(BaseModel):
@@ -934,7 +968,8 @@ class TrackError(BaseModel):
 
 class TrackRefusal(BaseModel):
     """Server -> client: the connection is refused and closed right after this message (close
-    code 1013 for ``too_many_connections``, 1001 for ``idle``, else 1008)."""
+    code 1013 for ``too_many_connections``, ``client_connections`` and ``too_many_requests``,
+    1001 for ``idle``, else 1008)."""
 
     model_config = ConfigDict(json_schema_extra=_examples(
         {"type": "error", "code": "no_map",
@@ -944,13 +979,20 @@ class TrackRefusal(BaseModel):
     code: TrackRefusalCode = Field(description=(
         "bad_request: environment_id is missing or not an integer; unknown_environment: no such environment; "
         "no_map: the environment has no map yet; too_many_connections: try again later; idle: the client sent "
-        "no message for track_idle_timeout_s (connect again to go on)."))
+        "no message for track_idle_timeout_s (connect again to go on); client_connections: this client address or "
+        "API key already holds its share of the connections (max_track_connections_per_address, _per_key); "
+        "too_many_requests: this client address or API key opens connections faster than its rate "
+        "(track_open_rate_per_address, _per_key), try again after retry_after_s; key_revoked: the connection's "
+        "API key was revoked while it was open."))
     message: str = Field(description="Why, for a person.")
+    retry_after_s: float | None = Field(None, exclude_if=lambda value: value is None, description=(
+        "too_many_requests only: seconds until this client may open a connection again (the field is absent "
+        "otherwise)."))
 
     @property
     def close_code(self) -> TrackCloseCode:
         """The WebSocket close code that follows this message."""
-        if self.code == "too_many_connections":
+        if self.code in TRY_AGAIN_REFUSALS:
             return TrackCloseCode.TRY_AGAIN_LATER
         if self.code == "idle":
             return TrackCloseCode.GOING_AWAY

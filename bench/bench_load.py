@@ -19,7 +19,9 @@ Phases, each ``--seconds`` long, one after the other on the same server:
 
 The legit clients share one asyncio process (an httpx client for /detect, the
 `websockets` client for /track), all with the key (``X-API-Key``). A /detect client
-POSTs the walk's frames (raw JPEG body) back to back. A /track stream is a 30 fps camera
+POSTs the walk's frames (raw JPEG body) back to back, each client from a loopback address
+of its own (127.0.0.10, 127.0.0.11, ...: twenty clients are twenty machines to the
+server's limits per client address); the /track streams come from 127.0.0.1. A /track stream is a 30 fps camera
 (``--track-fps``) in lock-step: it sends a frame at its slot, waits for the reply, then
 waits for the next slot (a slot missed while waiting is skipped, as a camera's frame is
 gone; never more than one frame in flight); it plays the walk forwards and back. The
@@ -27,9 +29,13 @@ streams' slots are staggered over one frame period.
 
 The hostile client is a process of its own, so that its blocking cannot slow the legit
 clients, at a lower CPU priority (``--hostile-nice``, 10): on a deployment it would run on
-another machine, not on the server's two cores; its CPU use is reported. It cycles
-through these cases as fast as their replies come, each bounded by
-timeouts (30 s a request), its replies' statuses and close codes recorded per case:
+another machine, not on the server's two cores; its CPU use is reported. It connects from
+127.0.0.2 with an admin key of its own. Throughout the phase it floods the server at its
+full rate: four loops of ``GET /environments`` and two loops opening /track connections
+(reading the first message, then closing), each sending again as soon as the reply
+comes. Meanwhile it cycles through these cases as fast as their replies come, each
+bounded by timeouts (30 s a request), its replies' statuses and close codes recorded per
+case:
 
 * PUT a 20 MiB map (~130k targets) on the sacrificial environment, with the key, and
   without it;
@@ -45,6 +51,10 @@ timeouts (30 s a request), its replies' statuses and close codes recorded per ca
 * a map whose camera has K and distortion of 1e300, then ``locate`` with
   ``method=posit`` and ``method=mean``.
 
+Its refusals by the per-client limits (HTTP 429, /track ``too_many_requests`` and
+``client_connections``) are counted per second, and the server CPU the hostile client
+costs is the server's CPU in its phase less that in the ``load`` phase.
+
 The server's resident memory (VmRSS of its web process and that process's children, the
 image workers) is sampled every 0.2 s: per phase before, peak, and 3 s after its clients
 stopped. The CPU time each side used (the server, the legit clients, the hostile client)
@@ -59,6 +69,16 @@ phase the server's peak memory under 2 GB and no server error. Each gets PASS or
 Timings are wall-clock on a shared machine (the load average is printed); on two cores
 the load generator itself takes a share of the CPU, so compare runs on the same machine.
 
+Slowloris (``--slowloris``, on its own): a process opens as many connections as it can
+from 127.0.0.2 (up to 2000 a second), sends each a request line and then one more
+header line every 5 s, never ending the header, and replaces the ones the server closes;
+meanwhile /livez is asked from 127.0.0.1 every 0.1 s on a fresh connection (5 s
+allowed). Reported: the connections the slowloris held (peak, and median over the second
+half; as it sees them, so connections the kernel completed that the server has not yet
+accepted count too), the open files of the server's web process (sampled every second:
+its connections are most of them), /livez p50/p99/max (a failed try counts with its
+wait) and its failures; target: /livez p99 under 1 s.
+
 Run: ``.venv/bin/python bench/bench_load.py [--seconds 60] [--no-hostile]`` (markdown
 tables on stdout, progress on stderr; a default run takes about four minutes;
 ``--hostile-nice 0`` runs the hostile client at the server's priority;
@@ -71,12 +91,15 @@ import argparse
 import asyncio
 import contextlib
 import datetime
+import errno
 import json
 import math
 import multiprocessing
 import os
 import resource
+import selectors
 import shlex
+import socket
 import statistics
 import subprocess
 import sys
@@ -133,6 +156,12 @@ SOF_AT_ONCE = 8
 CUT_AT = 20 * 1024
 IDLE_CONNECTIONS = 10
 HANDSHAKE_CLOSES = 5  # per cycle
+#: The hostile client's loopback address; the /detect clients' are 127.0.0.<DETECT_SOURCE_BASE + i>.
+HOSTILE_SOURCE = "127.0.0.2"
+DETECT_SOURCE_BASE = 10
+#: The hostile client's flood: loops of GET /environments, loops opening /track, at once.
+FLOOD_REQUESTS = 4
+FLOOD_TRACK_OPENS = 2
 
 
 def _pct(values: Sequence[float], q: float) -> float:
@@ -248,6 +277,21 @@ class HostileReport:
     @property
     def server_errors(self) -> int:
         return sum(c.server_errors for c in self.cases)
+
+    @property
+    def attempts(self) -> int:
+        return sum(c.attempts for c in self.cases)
+
+    @property
+    def refused(self) -> int:
+        """Replies that are refusals by the per-client limits."""
+        return sum(n for c in self.cases for outcome, n in c.outcomes.items() if _limit_refusal(outcome))
+
+
+def _limit_refusal(outcome: str) -> bool:
+    """Whether a hostile case's outcome is a refusal by a per-client limit: HTTP 429, or a
+    /track too_many_requests or client_connections."""
+    return outcome.endswith("429") or "too_many_requests" in outcome or "client_connections" in outcome
 
 
 @dataclass
@@ -490,14 +534,19 @@ async def run_legit(label: str, base: str, ws_url: str, key: str, frames: list[b
     """The legit clients of one phase, while `clock` runs (monotonic clock)."""
     streams = [StreamStats(i) for i in range(n_streams)]
     detect = DetectStats(n_detect) if n_detect else None
-    limits = httpx.Limits(max_connections=n_detect + 1, max_keepalive_connections=n_detect + 1)
-    async with httpx.AsyncClient(base_url=base, headers={"X-API-Key": key}, timeout=TIMEOUT_S, limits=limits) as client:
+    async with contextlib.AsyncExitStack() as stack:
+        # Each /detect client from an address of its own, as separate machines would be.
+        clients = [await stack.enter_async_context(httpx.AsyncClient(
+            base_url=base, headers={"X-API-Key": key}, timeout=TIMEOUT_S,
+            transport=httpx.AsyncHTTPTransport(local_address=f"127.0.0.{DETECT_SOURCE_BASE + i}")))
+            for i in range(n_detect)]
         await asyncio.sleep(max(0.0, clock.start - time.monotonic()))
         progress = asyncio.create_task(_progress(label, clock, streams, detect))
         tasks = [asyncio.create_task(track_stream(s, ws_url, key, frames, fps, clock, s.index / n_streams))
                  for s in streams]
         if detect is not None:
-            tasks += [asyncio.create_task(detect_client(detect, client, frames, 7 * i, clock)) for i in range(n_detect)]
+            tasks += [asyncio.create_task(detect_client(detect, client, frames, 7 * i, clock))
+                      for i, client in enumerate(clients)]
         await asyncio.sleep(max(0.0, clock.deadline - time.monotonic()))
         while not clock.over():
             await asyncio.sleep(0.05)
@@ -555,14 +604,15 @@ async def _chunks(data: bytes, size: int = 2**20) -> AsyncIterator[bytes]:
 
 
 async def raw_upload(url: str, method: str, path: str, headers: dict[str, str], body: AsyncIterator[bytes],
-                     length: int) -> tuple[int, int]:
+                     length: int, source: str | None = None) -> tuple[int, int]:
     """Send a request with a `length`-byte body over a connection of its own, reading the
     reply while the body goes out: a server that answers before it has read the body (a
     refusal) is heard at once and the rest is not sent (an HTTP client library would
     fail on the closed connection instead). Returns the status and the bytes of body
     sent."""
     target = httpx.URL(url)
-    reader, writer = await asyncio.wait_for(asyncio.open_connection(target.host, target.port), TIMEOUT_S)
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(
+        target.host, target.port, local_addr=(source, 0) if source else None), TIMEOUT_S)
     status_line = asyncio.create_task(reader.readline())
     sent = 0
     try:
@@ -595,6 +645,7 @@ class HostilePayloads:
     environment_id: int
     frame: bytes  # one real frame of the walk
     true_map: dict[str, Any]
+    source: str = HOSTILE_SOURCE  # the loopback address it connects from
 
 
 class Hostile:
@@ -627,6 +678,8 @@ class Hostile:
             (CaseStats(f"/track {IDLE_CONNECTIONS} idle connections"), self.track_idle),
             (CaseStats(f"/track closed after the handshake, {HANDSHAKE_CLOSES} a cycle"), self.track_handshake_close),
         ]
+        self.flood_requests = CaseStats(f"flood: GET /environments, {FLOOD_REQUESTS} loops")
+        self.flood_opens = CaseStats(f"flood: /track opened and closed, {FLOOD_TRACK_OPENS} loops")
         self.http: httpx.AsyncClient | None = None
         self.idle: list[asyncio.Task[None]] = []
         self.stopping = False
@@ -648,7 +701,7 @@ class Hostile:
         stats.body_bytes = length
         sent = time.monotonic()
         try:
-            status, sent_bytes = await raw_upload(self.p.base, method, path, headers, body, length)
+            status, sent_bytes = await raw_upload(self.p.base, method, path, headers, body, length, self.p.source)
         except (OSError, TimeoutError, ValueError, IndexError) as exc:
             stats.failed(exc, sent)
             return
@@ -657,7 +710,7 @@ class Hostile:
 
     def _connect(self, **kwargs: Any) -> Any:
         return websockets.connect(self.p.ws_url, additional_headers=self.key, open_timeout=TIMEOUT_S,
-                                  close_timeout=5, max_size=None, **kwargs)
+                                  close_timeout=5, max_size=None, local_addr=(self.p.source, 0), **kwargs)
 
     @staticmethod
     def _closed(exc: ConnectionClosed) -> str:
@@ -760,6 +813,27 @@ class Hostile:
         self.idle = [t for t in self.idle if not t.done()]
         self.idle += [asyncio.create_task(self._hold(stats)) for _ in range(IDLE_CONNECTIONS - len(self.idle))]
 
+    async def flood_request(self) -> None:
+        """GET /environments again as soon as each reply comes."""
+        while not self.stopping:
+            await self._request(self.flood_requests, "", "GET", "/environments", headers=self.key)
+
+    async def flood_open(self) -> None:
+        """Open /track, read the first message (a hello or a refusal), close; again."""
+        stats = self.flood_opens
+        while not self.stopping:
+            stats.attempts += 1
+            sent = time.monotonic()
+            try:
+                async with self._connect() as ws:
+                    first = json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT_S))
+                    stats.reply(f"{first.get('type')}/{first.get('code', '-')}", sent)
+            except ConnectionClosed as exc:
+                stats.reply(self._closed(exc), sent)
+            except Exception as exc:  # noqa: BLE001 - counted, and sent again
+                stats.failed(exc, sent)
+                await asyncio.sleep(0.05)
+
     async def track_handshake_close(self, stats: CaseStats) -> None:
         for _ in range(HANDSHAKE_CLOSES):
             stats.attempts += 1
@@ -776,9 +850,12 @@ class Hostile:
     async def run(self, start: float, deadline: float, first_cycle: Any) -> HostileReport:
         """Cycle through the cases from `start` until `deadline`, and at least once whole
         (then `first_cycle` is set)."""
-        report = HostileReport([stats for stats, _ in self.cases])
-        async with httpx.AsyncClient(base_url=self.p.base, timeout=TIMEOUT_S) as self.http:
+        report = HostileReport([*(stats for stats, _ in self.cases), self.flood_requests, self.flood_opens])
+        transport = httpx.AsyncHTTPTransport(local_address=self.p.source)
+        async with httpx.AsyncClient(base_url=self.p.base, timeout=TIMEOUT_S, transport=transport) as self.http:
             await asyncio.sleep(max(0.0, start - time.monotonic()))
+            flood = [*(asyncio.create_task(self.flood_request()) for _ in range(FLOOD_REQUESTS)),
+                     *(asyncio.create_task(self.flood_open()) for _ in range(FLOOD_TRACK_OPENS))]
             while time.monotonic() < deadline or not report.cycles:
                 for stats, case in self.cases:
                     if time.monotonic() >= deadline and report.cycles:
@@ -792,9 +869,9 @@ class Hostile:
                     first_cycle.set()
             report.seconds = time.monotonic() - start
             self.stopping = True
-            for task in self.idle:
+            for task in [*self.idle, *flood]:
                 task.cancel()
-            await asyncio.gather(*self.idle, return_exceptions=True)
+            await asyncio.gather(*self.idle, *flood, return_exceptions=True)
         return report
 
 
@@ -959,6 +1036,15 @@ def print_report(results: list[PhaseResult], header: list[str]) -> None:
         print(f"\nHostile client, {h.cycles} whole cycle(s) in {h.seconds:.0f} s"
               f"{'; ' + h.problem if h.problem else ''} (outcomes: HTTP status, WebSocket reply type/code or "
               f"close code, !exception):\n")
+        if h.seconds:
+            cost = (f"{_fmt(hostile.server_cpu_s / hostile.seconds - load.server_cpu_s / load.seconds, 2)} cores (the "
+                    f"server's {_fmt(hostile.server_cpu_s / hostile.seconds, 2)} in this phase, "
+                    f"{_fmt(load.server_cpu_s / load.seconds, 2)} in the load phase)") if load and load.seconds else "-"
+            print(f"- requests and /track connections: {h.attempts} ({h.attempts / h.seconds:.0f} a second); refused "
+                  f"by the per-client limits (429, too_many_requests, client_connections): {h.refused} "
+                  f"({h.refused / h.seconds:.0f} a second)")
+            print(f"- the server CPU the hostile client costs: {cost}; its own CPU: "
+                  f"{_fmt(h.cpu_s / h.seconds, 2)} cores\n")
         print("| case | attempts | outcomes | median reply s | exceptions | server errors | notes |")
         print("|---|---|---|---|---|---|---|")
         for c in h.cases:
@@ -981,6 +1067,244 @@ def print_report(results: list[PhaseResult], header: list[str]) -> None:
         print(f"- {r.name}: peak RSS {_fmt(r.memory.peak_mb, 0)} MB < {TARGET_PEAK_MB:.0f} MB: "
               f"{_verdict(r.memory.peak_mb < TARGET_PEAK_MB)}; server errors {r.server_errors} = 0: "
               f"{_verdict(r.server_errors == 0)}")
+
+
+# ---------------------------------------------------------------------- slowloris
+
+#: The slowloris client connects from this loopback address (/livez is asked from 127.0.0.1).
+SLOWLORIS_SOURCE = "127.0.0.2"
+#: It opens at most this many connections a second, and this many at once in flight.
+SLOWLORIS_OPEN_PER_S = 2000
+SLOWLORIS_CONNECTING = 256
+#: Each open connection gets one more header line this often, s (never the empty line).
+SLOWLORIS_TRICKLE_S = 5.0
+#: /livez is asked this often, on a fresh connection each time, each given this long, s.
+LIVEZ_PERIOD_S = 0.1
+LIVEZ_TIMEOUT_S = 5.0
+#: The target: /livez p99 under this while the slowloris runs, s.
+TARGET_LIVEZ_P99_S = 1.0
+#: Its source ports, taken in turn: the kernel picking them searches the ports in use,
+#: which slows to a crawl with thousands of them.
+SLOWLORIS_PORTS = range(10_000, 65_536)
+
+
+@dataclass
+class SlowlorisReport:
+    """What the slowloris client got: connections accepted, closed by the server, held."""
+
+    accepted: int = 0
+    closed_by_server: int = 0
+    held_peak: int = 0
+    held_samples: list[int] = field(default_factory=list)  # once a second
+    problem: str = ""
+
+
+def _slowloris(port: int, seconds: float) -> SlowlorisReport:
+    """Open as many connections as the server (and this process's open-file limit) allow
+    from SLOWLORIS_SOURCE, each sending a request header a line at a time and never ending
+    it; connections the server closes are replaced."""
+    report = SlowlorisReport()
+    fd_limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    selector = selectors.DefaultSelector()
+    connecting: set[socket.socket] = set()
+    held: list[socket.socket] = []
+    start = time.monotonic()
+    deadline, next_trickle, next_sample = start + seconds, start + SLOWLORIS_TRICKLE_S, start + 1.0
+    opened, paused_until, next_port = 0, 0.0, 0
+
+    def drop(sock: socket.socket) -> None:
+        with contextlib.suppress(KeyError, ValueError):
+            selector.unregister(sock)
+        connecting.discard(sock)
+        sock.close()
+
+    while (now := time.monotonic()) < deadline:
+        budget = int((now - start) * SLOWLORIS_OPEN_PER_S) - opened
+        while (now >= paused_until and budget > 0 and len(connecting) < SLOWLORIS_CONNECTING
+               and len(held) + len(connecting) < fd_limit - 16):
+            try:
+                sock = socket.socket()
+            except OSError as exc:  # out of open files: wait for the server to close some
+                if exc.errno not in (errno.EMFILE, errno.ENFILE):
+                    raise
+                paused_until = now + 1.0
+                break
+            sock.setblocking(False)
+            for _ in range(64):  # (a port still held, or lingering after a close of ours: the next)
+                next_port += 1
+                try:
+                    sock.bind((SLOWLORIS_SOURCE, SLOWLORIS_PORTS[next_port % len(SLOWLORIS_PORTS)]))
+                    break
+                except OSError:
+                    continue
+            else:
+                sock.close()
+                paused_until = now + 1.0
+                break
+            sock.connect_ex(("127.0.0.1", port))
+            selector.register(sock, selectors.EVENT_WRITE)
+            connecting.add(sock)
+            opened += 1
+            budget -= 1
+        for key, _ in selector.select(timeout=0.02):
+            sock = key.fileobj
+            assert isinstance(sock, socket.socket)
+            if sock in connecting:
+                if sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) != 0:
+                    drop(sock)
+                    continue
+                connecting.discard(sock)
+                try:
+                    sock.send(b"GET / HTTP/1.1\r\nHost: fidotrack\r\n")
+                except OSError:
+                    drop(sock)
+                    report.closed_by_server += 1
+                    continue
+                report.accepted += 1
+                selector.modify(sock, selectors.EVENT_READ)
+                held.append(sock)
+                continue
+            try:  # readable: the server answered (408) or closed it
+                data = sock.recv(4096)
+            except OSError:
+                data = b""
+            if not data:
+                report.closed_by_server += 1
+                held.remove(sock)
+                drop(sock)
+        now = time.monotonic()
+        if now >= next_trickle:
+            next_trickle = now + SLOWLORIS_TRICKLE_S
+            for sock in list(held):
+                try:
+                    sock.send(b"X-Slow: 1\r\n")
+                except OSError:
+                    report.closed_by_server += 1
+                    held.remove(sock)
+                    drop(sock)
+        if now >= next_sample:
+            next_sample += 1.0
+            report.held_samples.append(len(held))
+            report.held_peak = max(report.held_peak, len(held))
+            if len(report.held_samples) % 5 == 0:
+                print(f"slowloris: {now - start:.0f} s, {len(held)} held, {len(connecting)} connecting, "
+                      f"{report.closed_by_server} closed by the server", file=sys.stderr)
+    for sock in [*held, *connecting]:
+        sock.close()
+    return report
+
+
+def slowloris_process(port: int, seconds: float, results: Any) -> None:
+    """The slowloris client, in a process of its own, its open-file limit raised to the most it may have."""
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    try:
+        results.put(_slowloris(port, seconds))
+    except Exception as exc:  # noqa: BLE001 - reported, not lost with the process
+        results.put(SlowlorisReport(problem=repr(exc)))
+
+
+@dataclass
+class LivezStats:
+    """/livez as a health check saw it: every try's wait (s; a failed try waited too) and the failures."""
+
+    waits_s: list[float] = field(default_factory=list)
+    failures: Counter[str] = field(default_factory=Counter)
+
+
+def poll_livez(base: str, seconds: float) -> LivezStats:
+    """Ask /livez every LIVEZ_PERIOD_S for `seconds`, each on a fresh connection."""
+    stats = LivezStats()
+    deadline = time.monotonic() + seconds
+    while (start := time.monotonic()) < deadline:
+        try:
+            reply = httpx.get(f"{base}/livez", timeout=LIVEZ_TIMEOUT_S)
+            if reply.status_code != 200:
+                stats.failures[f"HTTP {reply.status_code}"] += 1
+        except httpx.TransportError as exc:
+            stats.failures[type(exc).__name__] += 1
+        stats.waits_s.append(time.monotonic() - start)
+        time.sleep(max(0.0, start + LIVEZ_PERIOD_S - time.monotonic()))
+    return stats
+
+
+def _open_files(pid: int) -> int:
+    try:
+        return len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return 0
+
+
+def sample_open_files(pid: int, stop: threading.Event, samples: list[int]) -> None:
+    """The open files of process `pid` (the web process: its connections are most of them), once a second."""
+    while not stop.wait(1.0):
+        samples.append(_open_files(pid))
+
+
+def run_slowloris(seconds: float, server_env: dict[str, str]) -> None:
+    """The slowloris scenario on a fresh server: its report as markdown on stdout."""
+    with tempfile.TemporaryDirectory() as tmp:
+        os.environ.update({"FIDOTRACK_LOG_LEVEL": "WARNING", **server_env})
+        with running_server(Path(tmp) / "data", Path(tmp) / "server.log") as server:
+            port = int(server.url.rsplit(":", 1)[1])
+            ctx = multiprocessing.get_context("spawn")
+            results = ctx.Queue()
+            process = ctx.Process(target=slowloris_process, name="slowloris", daemon=True,
+                                  args=(port, seconds, results))
+            print(f"slowloris from {SLOWLORIS_SOURCE} for {seconds:.0f} s; /livez from 127.0.0.1", file=sys.stderr)
+            web = web_process(server.process.pid, port)
+            server_fds: list[int] = []
+            stop = threading.Event()
+            sampler = threading.Thread(target=sample_open_files, args=(web, stop, server_fds), daemon=True)
+            process.start()
+            sampler.start()
+            livez = poll_livez(server.url, seconds)
+            stop.set()
+            sampler.join()
+            report = _get(results, 60)
+            process.join(10)
+            if process.is_alive():
+                process.kill()
+            if not isinstance(report, SlowlorisReport):
+                report = SlowlorisReport(problem=f"the slowloris client did not report ({report!r})")
+            server_fd_limit = _fd_limit(web)
+    p99 = _pct(livez.waits_s, 99)
+    last = report.held_samples[len(report.held_samples) // 2:] or [0]
+    last_fds = server_fds[len(server_fds) // 2:] or [0]
+    commit = _git("rev-parse", "--short", "HEAD") or "?"
+    code = f"the code on PYTHONPATH={os.environ['PYTHONPATH']}" if os.environ.get("PYTHONPATH") else f"commit {commit}"
+    env = " ".join(f"{k}={v}" for k, v in server_env.items()) or "(as is)"
+    print("\n".join([
+        "# /livez while a slowloris holds connections",
+        "",
+        f"- command: `{shlex.join(['python', *sys.argv])}`; {code}",
+        f"- server: `fidotrack serve` on 127.0.0.1, env {env}; its open-file limit {server_fd_limit}",
+        f"- slowloris: from {SLOWLORIS_SOURCE}, up to {SLOWLORIS_OPEN_PER_S} new connections a second, one header "
+        f"line per connection every {SLOWLORIS_TRICKLE_S:.0f} s, for {seconds:.0f} s",
+        "",
+        "| slowloris: connected | closed by the server | held, peak | held, median of the 2nd half "
+        "| server's open files, peak | median of the 2nd half "
+        "| /livez asked | p50 ms | p99 ms | max ms | failed | p99 < 1 s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| {report.accepted} | {report.closed_by_server} | {report.held_peak} | {statistics.median(last):.0f} "
+        f"| {max(server_fds, default=0)} | {statistics.median(last_fds):.0f} "
+        f"| {len(livez.waits_s)} | {_fmt(_pct(livez.waits_s, 50) * 1e3)} | {_fmt(p99 * 1e3)} "
+        f"| {_fmt(max(livez.waits_s, default=math.nan) * 1e3)} | {_histogram(livez.failures)} "
+        f"| {_verdict(p99 < TARGET_LIVEZ_P99_S)} |",
+    ]))
+    if report.problem:
+        print(f"\nslowloris client problem: {report.problem}")
+
+
+def _fd_limit(pid: int) -> str:
+    try:
+        for line in Path(f"/proc/{pid}/limits").read_text().splitlines():
+            if line.startswith("Max open files"):
+                return line.split()[3]
+    except OSError:
+        pass
+    return "?"
 
 
 def _git(*args: str) -> str:
@@ -1011,6 +1335,8 @@ def main() -> None:
         "it shares the server's cores); 0 to run it as the server"))
     parser.add_argument("--frames", type=int, default=200, help="frames of the rendered walk")
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--slowloris", action="store_true", help=(
+        "run only the slowloris scenario, --seconds long: /livez while one address holds what connections it can"))
     parser.add_argument("--server-env", action="append", default=[], metavar="KEY=VALUE",
                         help="extra environment for the server (e.g. OPENBLAS_NUM_THREADS=1); repeatable")
     args = parser.parse_args()
@@ -1020,6 +1346,9 @@ def main() -> None:
         if not sep:
             parser.error(f"--server-env takes KEY=VALUE, got {item!r}")
         server_env[name] = value
+    if args.slowloris:
+        run_slowloris(args.seconds, server_env)
+        return
 
     load_start = os.getloadavg()
     room = BENCH_ROOM.walk(args.seed, args.frames, kind="tracking")
@@ -1045,12 +1374,16 @@ def main() -> None:
                     created.raise_for_status()
                     http.put(f"/environments/{created.json()['id']}/map", json=true_map).raise_for_status()
                     environments.append(created.json()["id"])
+                # The hostile client's own key: a party of its own, as the limits per key see it.
+                hostile_key = http.post("/keys", json={"name": "hostile", "scopes": ["admin"]})
+                hostile_key.raise_for_status()
             ws_base = server.url.replace("http://", "ws://")
             sampler = RssSampler(web_process(server.process.pid, port))
             sampler.start()
             bench = Bench(server.url, key, f"{ws_base}/track?environment_id={environments[0]}", frames, args,
                           sampler, HostilePayloads(server.url, f"{ws_base}/track?environment_id={environments[1]}",
-                                                   key, environments[1], frames[len(frames) // 2], true_map))
+                                                   hostile_key.json()["key"], environments[1],
+                                                   frames[len(frames) // 2], true_map))
             # Warm-up (compiled kernels, thread pools): a few seconds of both kinds of client.
             start = time.monotonic()
             asyncio.run(run_legit("warm-up", server.url, bench.ws_url, key, frames, 1, 2, args.track_fps,

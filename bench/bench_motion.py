@@ -295,7 +295,9 @@ def main() -> None:
     load = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
-        server = _start_server(Path(tmp), port, {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1"})
+        # The bench's FreeD receiver is on 127.0.0.1: the server sends there only when told.
+        server = _start_server(Path(tmp), port, {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1",
+                                                 "FIDOTRACK_FREED_ALLOWED_NETWORKS": '["127.0.0.1/32"]'})
         try:
             base = f"http://127.0.0.1:{port}"
             urls = {}

@@ -85,7 +85,9 @@ ARTIFACTS = Path(os.environ.get("FIDOTRACK_TEST_ARTIFACTS", Path(__file__).resol
 
 
 def _watched_page(browser: Any, **context: Any) -> tuple[Any, list[str]]:
-    """A page whose script errors are collected: a page that throws fails its test."""
+    """A page whose script errors are collected: a page that throws fails its test.
+    (Its ``wait_for_function`` predicates are functions, ``"() => ..."``: the pages'
+    Content-Security-Policy refuses the eval Playwright needs to poll a bare expression.)"""
     page = browser.new_context(viewport={"width": 1300, "height": 900}, **context).new_page()
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
@@ -166,7 +168,7 @@ def test_live_tracking_from_the_browser_camera_gives_the_poses_track_gives(tmp_p
                 "framesent", lambda payload: sent.append(payload) if isinstance(payload, bytes) else None))
             page.goto(f"{server.url}/app/#/environments/{env['id']}/track")
             page.click("#start")
-            page.wait_for_function("window.fidotrack.track.replies.length >= 90", timeout=90_000)
+            page.wait_for_function("() => window.fidotrack.track.replies.length >= 90", timeout=90_000)
             page.click("#start")  # stop
             state = page.evaluate("window.fidotrack.track")
             stats = page.locator("#track-stats").inner_text()
@@ -229,7 +231,7 @@ def _survey_page(page: Any, server_url: str, video: SurveyVideo) -> None:
     page.fill("input[name=name]", "small room")
     page.fill("input[name=marker_size_mm]", str(1000 * video.marker_size_m))
     page.click("button:text-is('Create')")
-    page.wait_for_function("location.hash.endsWith('/survey')")
+    page.wait_for_function("() => location.hash.endsWith('/survey')")
     page.set_input_files("input[name=video]", str(video.path))
 
 
@@ -264,11 +266,11 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         in_map = [i for i in named if i in {t["id"] for t in mapped["targets"]}]
         if in_map:  # a card the survey mapped weakly: its link opens the map looking at it
             chips.nth(named.index(in_map[0])).click()
-            page.wait_for_function(f"window.fidotrack.map && window.fidotrack.map.focused === {in_map[0]}",
+            page.wait_for_function(f"() => window.fidotrack.map && window.fidotrack.map.focused === {in_map[0]}",
                                    timeout=30_000)
             page.go_back()
         page.click("text=Open the map")
-        page.wait_for_function("window.fidotrack.map && window.fidotrack.map.cards > 0 && "
+        page.wait_for_function("() => window.fidotrack.map && window.fidotrack.map.cards > 0 && "
                                "window.fidotrack.map.focused === null", timeout=30_000)
         state = page.evaluate("window.fidotrack.map")
         assert state["ids"] == sorted(t["id"] for t in mapped["targets"])
@@ -279,13 +281,13 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         page.wait_for_timeout(1000)
         assert page.evaluate("window.fidotrack.map.framesDrawn") == drawn > 0
         page.click("button:text-is('Top down')")
-        page.wait_for_function(f"window.fidotrack.map.framesDrawn > {drawn}")
+        page.wait_for_function(f"() => window.fidotrack.map.framesDrawn > {drawn}")
         assert state["trajectory"] == sum(p is not None for p in job["result"]["trajectory"])
         _screenshot(page, "map")
         # Align to the world with the first card as origin: the viewer redraws the aligned map.
         page.select_option("#origin-card", str(state["ids"][0]))
         page.click("button:text-is('Set origin')")
-        page.wait_for_function("window.fidotrack.map.frame === 'world'", timeout=10_000)
+        page.wait_for_function("() => window.fidotrack.map.frame === 'world'", timeout=10_000)
         origin_map = httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json()
         assert origin_map["frame"] == "world"
         assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
@@ -294,7 +296,7 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         lines = [f"{i} {d} " + " ".join(f"{x:.5f}" for x in truth[i][d]) for i, d in zip(state["ids"][:4], (0, 1, 2, 3))]
         page.fill("textarea", "\n".join(["# target disc x y z", *lines]))
         page.click("button:text-is('Fit')")
-        page.wait_for_function("window.fidotrack.map.alignment && window.fidotrack.map.alignment.residuals.length === 4")
+        page.wait_for_function("() => window.fidotrack.map.alignment && window.fidotrack.map.alignment.residuals.length === 4")
         alignment = page.evaluate("window.fidotrack.map.alignment")
         assert alignment["scale"] == 1.0 and alignment["rms_m"] < 0.005  # rigid: the survey's metric scale kept
         assert page.locator("#alignment-residuals tr").count() == 1 + 4
@@ -304,7 +306,7 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         assert np.all((path > -0.05) & (path < np.asarray(survey_video.room_size) + 0.05)), path
         # Undo the fit: the origin alignment's map is back, drawn whole.
         page.click("#restore-map")
-        page.wait_for_function("window.fidotrack.map.alignment === null")
+        page.wait_for_function("() => window.fidotrack.map.alignment === null")
         assert httpx.get(f"{server.url}/environments/{state['environmentId']}/map").json() == origin_map
         assert page.evaluate("window.fidotrack.map.cards") == len(mapped["targets"])
     assert errors == []
@@ -316,10 +318,10 @@ def test_a_survey_cancelled_from_the_page_keeps_the_old_map(tmp_path: Path, brow
         page, errors = _watched_page(browser)
         _survey_page(page, server.url, survey_video)
         page.click("button:text-is('Upload and survey')")
-        page.wait_for_function("window.fidotrack.survey.job && window.fidotrack.survey.job.status === 'running'",
+        page.wait_for_function("() => window.fidotrack.survey.job && window.fidotrack.survey.job.status === 'running'",
                                timeout=60_000)
         page.click("button:text-is('Cancel')")
-        page.wait_for_function("window.fidotrack.survey.job.status === 'cancelled'", timeout=60_000)
+        page.wait_for_function("() => window.fidotrack.survey.job.status === 'cancelled'", timeout=60_000)
         assert "previous map" in page.locator("#survey-result").inner_text()
         environment_id = page.evaluate("window.fidotrack.survey.environmentId")
         assert httpx.get(f"{server.url}/environments/{environment_id}").json()["has_map"] is False
@@ -336,7 +338,7 @@ def test_the_detection_check_draws_the_targets_of_a_chosen_image(tmp_path: Path,
         page, errors = _watched_page(browser)
         page.goto(f"{server.url}/app/#/detect")
         page.set_input_files("#detect-file", str(path))
-        page.wait_for_function("window.fidotrack.detect.result !== null", timeout=30_000)
+        page.wait_for_function("() => window.fidotrack.detect.result !== null", timeout=30_000)
         result = page.evaluate("window.fidotrack.detect.result")
         _screenshot(page, "detect")
         expected = httpx.post(f"{server.url}/detect", content=path.read_bytes(),
@@ -367,7 +369,7 @@ def test_the_pages_show_the_services_errors_and_use_the_key_typed_in(tmp_path: P
         page.fill("input[name=name]", "lab")
         page.fill("input[name=marker_size_mm]", "150")
         page.click("button:text-is('Create')")
-        page.wait_for_function("location.hash.endsWith('/survey')")
+        page.wait_for_function("() => location.hash.endsWith('/survey')")
         # The sheet of cards to print, at the environment's card side, fetched with the key.
         page.goto(f"{server.url}/app/#/environments")
         with page.expect_response(lambda r: "/markers/sheet.pdf" in r.url) as sheet, page.expect_popup():
@@ -423,7 +425,7 @@ def test_a_phone_on_the_network_gets_the_camera_over_https(tmp_path: Path, playw
             page, errors = _watched_page(browser, permissions=["camera"], ignore_https_errors=True)
             page.goto(server.url.replace("127.0.0.1", address) + f"/app/#/environments/{env['id']}/track")
             page.click("#start")
-            page.wait_for_function("window.fidotrack.track.replies.filter(r => r.pose).length >= 5", timeout=60_000)
+            page.wait_for_function("() => window.fidotrack.track.replies.filter(r => r.pose).length >= 5", timeout=60_000)
             assert page.evaluate("window.fidotrack.track.errors") == []
     finally:
         browser.close()

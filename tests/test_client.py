@@ -19,7 +19,7 @@ from app.cli import build_parser, main
 from app.client import ApiError, Client, JobFailed, TrackRefused
 from app.core.geometry import Pose
 from app.schemas import FreeDOutput, JobOut, JobStatus, TrackConfig
-from tests.conftest import Server, example_map, running_server
+from tests.conftest import Server, example_map, running_server, start_server
 
 
 @dataclass
@@ -60,8 +60,15 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Room:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     folder = tmp_path_factory.mktemp("server")
-    with running_server(folder / "data", folder / "server.log") as running:
+    # FreeD to the tests' receivers on 127.0.0.1, as with a renderer on the server's machine.
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("FIDOTRACK_FREED_CONNECTION_RECEIVERS", "true")
+        env.setenv("FIDOTRACK_FREED_ALLOWED_NETWORKS", '["127.0.0.1/32"]')
+        running = start_server(folder / "data", folder / "server.log")
+    try:
         yield running
+    finally:
+        running.stop()
 
 
 def _errors_mm(replies: list, poses: list[Pose]) -> np.ndarray:

@@ -1,8 +1,8 @@
 """The deployment files (compose.yaml, Dockerfile) hold together without a Docker daemon:
 every role is the same image running a real `fidotrack` command, the web and the workers
-share the uploads at the data directory's path and reach the scheduler, the database
-URL matches the database service, and the image installs the PostgreSQL driver.
-docs/deployment.md describes the topology."""
+share the uploads at the data directory's path and reach the scheduler over TLS with the
+certificates made for them, the database URL matches the database service, and the image
+installs the PostgreSQL driver. docs/deployment.md describes the topology."""
 
 from __future__ import annotations
 
@@ -25,6 +25,10 @@ from app.settings import Settings
 ROOT = Path(__file__).resolve().parents[1]
 #: The services that run the fidotrack image, and the subcommand each runs.
 ROLES = {"web": "serve", "scheduler": "scheduler", "worker": "worker"}
+#: The service that makes the job engine's certificates.
+CERTS = "engine-certs"
+#: The settings that give a process of the job engine its TLS files.
+ENGINE_TLS = ("FIDOTRACK_JOB_TLS_CA_FILE", "FIDOTRACK_JOB_TLS_CERT_FILE", "FIDOTRACK_JOB_TLS_KEY_FILE")
 #: `${NAME}`, `${NAME:-default}` or `${NAME-default}` in a compose file.
 VARIABLE = re.compile(r"\$\{(?P<name>\w+)(?::?-(?P<default>[^}]*))?\}")
 
@@ -147,14 +151,15 @@ def test_the_shared_data_directory_is_the_images_volume(compose: dict[str, Any],
 
 def test_web_and_workers_reach_the_scheduler_service(compose: dict[str, Any]) -> None:
     """FIDOTRACK_JOB_SCHEDULER of the web (and the workers' address) is the scheduler
-    service at the port it listens on."""
+    service at the port it listens on, over TLS."""
     scheduler = _parse(_command(_service(compose, "scheduler")))
-    expected = f"tcp://scheduler:{scheduler.port}"
+    expected = f"tls://scheduler:{scheduler.port}"
     assert _environment(_service(compose, "web")).get("FIDOTRACK_JOB_SCHEDULER") == expected
     worker = _service(compose, "worker")
     address = _parse(_command(worker)).scheduler or _environment(worker).get("FIDOTRACK_JOB_SCHEDULER")
     assert address == expected
     assert scheduler.host == "0.0.0.0"  # (127.0.0.1 would refuse the other containers)
+    assert _parse(_command(worker)).host == "0.0.0.0"  # (the scheduler and the other workers connect to it)
 
 
 def test_every_role_agrees_on_how_often_a_job_runs_again(compose: dict[str, Any]) -> None:
@@ -166,6 +171,53 @@ def test_every_role_agrees_on_how_often_a_job_runs_again(compose: dict[str, Any]
     settings = {role: {n: _environment(_service(compose, role)).get(n) for n in names} for role in ROLES}
     assert len(set(map(repr, settings.values()))) == 1, settings
     assert not [name for name in _environment(_service(compose, "scheduler")) if name.startswith("DASK_")]
+
+
+def test_the_engine_certificates_are_made_before_the_engine_starts(compose: dict[str, Any],
+                                                                    dockerfile: str) -> None:
+    """A one-shot step of the same image makes them into a named volume, once (a restart
+    keeps them), as the image's user, before the scheduler (and so the workers and the
+    web, which wait for it) starts."""
+    certs = _service(compose, CERTS)
+    args = _parse(_command(certs))
+    assert args.command == "engine-certs" and args.if_missing
+    assert (certs.get("build"), certs.get("image")) == (_service(compose, "web").get("build"),
+                                                        _service(compose, "web").get("image"))
+    assert str(certs.get("restart")) == "no"
+    out = str(args.out)
+    assert _mounts(certs).get(out) in (compose.get("volumes") or {}), _mounts(certs)
+    assert _service(compose, "scheduler")["depends_on"][CERTS]["condition"] == "service_completed_successfully"
+    # A fresh named volume takes the owner of the image's folder it is mounted on.
+    assert any(out in run and "chown" in run and "fidotrack" in run
+               for run in _dockerfile_instructions(dockerfile, "RUN")), out
+
+
+@pytest.mark.parametrize("role", sorted(ROLES))
+def test_each_role_of_the_engine_speaks_tls_with_its_own_certificate(compose: dict[str, Any], role: str) -> None:
+    """The containers talk across a network: no role runs with --insecure, each has the
+    authority's certificate and its own certificate and key, from the volume the
+    certificates step writes, mounted read-only."""
+    service = _service(compose, role)
+    args = _parse(_command(service))
+    assert not getattr(args, "insecure", False)
+    env = _environment(service)
+    assert all(env.get(name) for name in ENGINE_TLS), {name: env.get(name) for name in ENGINE_TLS}
+    out = str(_parse(_command(_service(compose, CERTS))).out)
+    ca, cert, key = (Path(env[name]) for name in ENGINE_TLS)
+    assert (ca, cert, key) == (Path(out) / "ca.pem", Path(out) / f"{role}.pem", Path(out) / f"{role}-key.pem")
+    volumes = [v for v in service.get("volumes", []) if isinstance(v, str) and v.split(":")[1] == out]
+    assert len(volumes) == 1 and volumes[0].split(":")[0] == _mounts(_service(compose, CERTS))[out]
+    assert volumes[0].endswith(":ro"), volumes
+
+
+def test_the_roles_certificates_are_the_ones_engine_certs_makes(tmp_path: Path) -> None:
+    from app.services.jobs.certs import make_engine_certs
+
+    issued = make_engine_certs(tmp_path / "certs")
+    assert sorted(issued.certs) == sorted(ROLES)
+    assert make_engine_certs(tmp_path / "certs", if_missing=True) == issued
+    with pytest.raises(FileExistsError):
+        make_engine_certs(tmp_path / "certs")
 
 
 @pytest.mark.parametrize("role", sorted(ROLES))

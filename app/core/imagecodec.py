@@ -23,7 +23,7 @@ import numpy as np
 import simplejpeg
 
 __all__ = ["JPEG_MAGIC", "JPEG_REDUCTIONS", "MAX_JPEG_SCANS", "PNG_MAGIC", "ImageError", "ImageHeader", "check_size",
-           "decode_gray", "read_header", "reduced_size"]
+           "decode_gray", "peek_size", "read_header", "reduced_size"]
 
 JPEG_MAGIC = b"\xff\xd8\xff"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -148,6 +148,44 @@ def read_header(data: bytes) -> ImageHeader:
         return _png_header(data)
     if data.startswith(JPEG_MAGIC):
         return _jpeg_header(data)
+    raise ImageError("unsupported", "not a JPEG or PNG image (unknown file signature)")
+
+
+def peek_size(head: bytes) -> tuple[int, int] | None:
+    """The (width, height) an image declares, from its first bytes alone: for checking
+    a file against the limits while it is still arriving.
+
+    Parameters
+    ----------
+    head : bytes
+        The first bytes of a file (any number).
+
+    Returns
+    -------
+    (width, height) : tuple of int, or None
+        None while `head` does not reach the size yet (a JPEG's start-of-frame may come
+        after application segments of up to 64 KiB each).
+
+    Raises
+    ------
+    ImageError
+        If the bytes already show that the file is not a JPEG or PNG, or a corrupt one.
+    """
+    if head.startswith(PNG_MAGIC):
+        if len(head) < 24:
+            return None
+        if head[12:16] != b"IHDR":
+            raise ImageError("corrupt", "PNG header has no IHDR chunk")
+        width, height = struct.unpack(">II", head[16:24])
+        return int(width), int(height)
+    if head.startswith(JPEG_MAGIC):
+        for marker, i, _ in _jpeg_segments(head, 2):
+            if marker in _SOF_MARKERS and i + 9 <= len(head):
+                height, width = struct.unpack(">HH", head[i + 5 : i + 9])
+                return int(width), int(height)
+        return None
+    if PNG_MAGIC.startswith(head[:8]) or JPEG_MAGIC.startswith(head[:3]):
+        return None  # too short to tell
     raise ImageError("unsupported", "not a JPEG or PNG image (unknown file signature)")
 
 

@@ -3,16 +3,14 @@ delete one that nothing uses."""
 
 from __future__ import annotations
 
-from functools import partial
-from typing import Annotated
+from fastapi import APIRouter, Request, Response, status
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
 
-import anyio
-from fastapi import APIRouter, File, Form, Response, UploadFile, status
-
-from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep
+from app.deps import ImageMemoryDep, JobsDep, RowId, SessionDep, SettingsDep, UploadsInFlightDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.routers.responses import JOB_QUEUE_FULL, UPLOAD_TOO_LARGE, invalid, not_found, problem
-from app.routers.uploads import read_upload
+from app.routers.responses import JOB_QUEUE_FULL, UPLOAD_TOO_LARGE, UPLOADS_BUSY, invalid, not_found, problem
+from app.routers.uploads import form_fields, multipart_doc, receive_job_upload
 from app.schemas import ClassifierOut, JobOut, Name
 from app.services import classifiers, training
 
@@ -49,29 +47,48 @@ def delete_classifier(classifier_id: RowId, session: SessionDep) -> None:
     classifiers.delete(session, classifier_id)
 
 
+class TrainingForm(BaseModel):
+    """The text fields of a training form."""
+
+    name: Name = Field(description="A name for the new classifier.")
+    base_classifier_id: int | None = Field(None, description="Classifier to adapt; default if omitted.")
+    family: str = Field("fido3x3", description="Marker family of the cards in the images.")
+
+
+_TRAINING_FILES = {
+    "images": {"type": "array", "items": {"type": "string", "format": "binary"},
+               "description": "JPEG/PNG frames of the site with targets in view."},
+}
+
+
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
              summary="Train a classifier on a site's images",
              responses={**UPLOAD_TOO_LARGE, **problem(415, "An image is not a JPEG or PNG"), **_422, **_404,
-                        **JOB_QUEUE_FULL})
+                        **JOB_QUEUE_FULL, **UPLOADS_BUSY},
+             openapi_extra=multipart_doc(TrainingForm, _TRAINING_FILES, required=("images",)))
 async def train_classifier(
+    request: Request,
     response: Response,
     session: SessionDep,
     settings: SettingsDep,
     runner: JobsDep,
     memory: ImageMemoryDep,
-    images: Annotated[list[UploadFile], File(description="JPEG/PNG frames of the site with targets in view.")],
-    name: Annotated[Name, Form(description="A name for the new classifier.")],
-    base_classifier_id: Annotated[int | None, Form(description="Classifier to adapt; default if omitted.")] = None,
-    family: Annotated[str, Form(description="Marker family of the cards in the images.")] = "fido3x3",
-) -> JobOut:
+    in_flight: UploadsInFlightDep,
+) -> JobOut | JSONResponse:
     """Adapt a classifier to a site's own images (odd lighting, odd cameras): targets
     the current detector finds and verifies become positives, the candidates it
     rejects become hard negatives. Returns the job (202, ``Location: /jobs/{id}``); its
-    result names the new classifier."""
-    blobs = [await read_upload(upload, settings.max_image_bytes) for upload in images]
-    # Every image is decoded to check it: off the event loop.
-    job = await anyio.to_thread.run_sync(partial(
-        training.submit_training, session, runner, settings, memory, images=blobs, name=name,
-        base_classifier_id=base_classifier_id, family=family))
-    response.headers["Location"] = f"/jobs/{job.id}"
+    result names the new classifier. A full job queue (429) or uploads in flight over
+    the server's limit (503) are refused before the upload is read, with ``Retry-After``."""
+
+    def submit(upload: training.TrainingUpload, fields: dict[str, str], job_id: str) -> JobOut:
+        form = form_fields(TrainingForm, fields)
+        return training.submit_training(session, runner, settings, upload, job_id=job_id, name=form.name,
+                                        base_classifier_id=form.base_classifier_id, family=form.family)
+
+    job = await receive_job_upload(
+        request, settings, runner, in_flight, admit=lambda: None,
+        target=lambda folder: training.TrainingUpload(folder, settings, memory), submit=submit)
+    if isinstance(job, JobOut):
+        response.headers["Location"] = f"/jobs/{job.id}"
     return job

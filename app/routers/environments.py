@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from app.deps import RowId, SessionDep
+from app.deps import RowId, SessionDep, SettingsDep
 from app.routers.json_bodies import JsonBodyRoute
-from app.routers.responses import NO_MAP, invalid, not_found, problem
+from app.routers.preconditions import IfMatchDep, map_etag_reply, set_map_etag
+from app.routers.responses import MAP_CHANGED, NO_MAP, invalid, not_found, problem
 from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, FreeDOutput, MapDocument,
                          MapRestoreRequest, MapVersionOut)
 from app.services import environments, freed
@@ -57,19 +58,26 @@ def delete_environment(environment_id: RowId, session: SessionDep) -> None:
 
 
 @router.get("/{environment_id}/map", response_model=MapDocument, summary="Export the map",
-            responses={**_404, **_422, **NO_MAP})
-def get_map(environment_id: RowId, session: SessionDep) -> MapDocument:
-    """The environment's map: camera and 3D disc centres of every target."""
-    return environments.get_map(session, environment_id)
+            responses={**map_etag_reply("The map"), **_404, **_422, **NO_MAP})
+def get_map(environment_id: RowId, session: SessionDep, response: Response) -> MapDocument:
+    """The environment's map: camera and 3D disc centres of every target. Its revision
+    is the reply's ``ETag``: a change made from this map sends it back in ``If-Match``."""
+    stored = environments.get_map(session, environment_id)
+    set_map_etag(response, stored.revision)
+    return stored.document
 
 
 @router.put("/{environment_id}/map", response_model=MapDocument, summary="Import a map",
-            responses={**_404, **_422})
-def put_map(environment_id: RowId, document: MapDocument, session: SessionDep) -> MapDocument:
+            responses={**map_etag_reply("The map stored"), **_404, **_422, **MAP_CHANGED})
+def put_map(environment_id: RowId, document: MapDocument, session: SessionDep, response: Response,
+            if_match: IfMatchDep) -> MapDocument:
     """Replace the map whole (a map measured by hand, or an exported one). A document
     with wrong shapes or non-finite numbers is refused whole and the stored map stays;
-    the map it replaces is kept as a version (`GET .../map/versions`)."""
-    return environments.put_map(session, environment_id, document)
+    the map it replaces is kept as a version (`GET .../map/versions`). With ``If-Match``
+    it is stored only over the map at that revision (else 412)."""
+    stored = environments.put_map(session, environment_id, document, if_match=if_match)
+    set_map_etag(response, stored.revision)
+    return stored.document
 
 
 @router.get("/{environment_id}/map/versions", response_model=list[MapVersionOut], summary="List earlier maps",
@@ -81,12 +89,17 @@ def list_map_versions(environment_id: RowId, session: SessionDep) -> list[MapVer
 
 
 @router.post("/{environment_id}/map/restore", response_model=MapDocument, summary="Restore an earlier map",
-             responses={**_404, **_422, **problem(409, "No earlier map to restore")})
-def restore_map(environment_id: RowId, session: SessionDep, spec: MapRestoreRequest | None = None) -> MapDocument:
-    """Make an earlier map the environment's map again: the one the last change replaced,
-    or the `version` given. The map it replaces is kept as a version in turn, so that a
-    restore can be undone too."""
-    return environments.restore_map(session, environment_id, spec.version if spec is not None else None)
+             responses={**map_etag_reply("The map restored"), **_404, **_422,
+                        **problem(409, "No earlier map to restore"), **MAP_CHANGED})
+def restore_map(environment_id: RowId, spec: MapRestoreRequest, session: SessionDep, response: Response,
+                if_match: IfMatchDep) -> MapDocument:
+    """Make an earlier map the environment's map again: the one the last change replaced
+    (body ``{}``), or the `version` given. The map it replaces is kept as a version in
+    turn, so that a restore can be undone too. With ``If-Match`` it replaces only the
+    map at that revision (else 412)."""
+    stored = environments.restore_map(session, environment_id, spec.version, if_match=if_match)
+    set_map_etag(response, stored.revision)
+    return stored.document
 
 
 _404_FREED = problem(404, "No such environment, or it has no FreeD output")
@@ -102,12 +115,15 @@ def get_freed(environment_id: RowId, session: SessionDep) -> FreeDOutput:
 
 @router.put("/{environment_id}/freed", response_model=FreeDOutput, summary="Set the FreeD output",
             responses={**_404, **_422})
-def put_freed(environment_id: RowId, output: FreeDOutput, session: SessionDep) -> FreeDOutput:
+def put_freed(environment_id: RowId, output: FreeDOutput, session: SessionDep, settings: SettingsDep) -> FreeDOutput:
     """Send every pose tracked in this environment as a FreeD D1 packet over UDP to a
     receiver (Unreal Engine's LiveLink FreeD source, Aximmetry, Disguise): docs/freed.md.
     Connections opened afterwards use it; a connection can choose its own camera id or
-    opt out in its config (`freed`)."""
-    return freed.put(session, environment_id, output)
+    opt out in its config (`freed`). A loopback, link-local, multicast, broadcast,
+    unspecified or reserved address is refused (422) unless the server's
+    `freed_allowed_networks` lists it; a host name is checked by its addresses when a
+    connection uses it."""
+    return freed.put(session, environment_id, output, policy=freed.FreeDPolicy.from_settings(settings))
 
 
 @router.delete("/{environment_id}/freed", status_code=status.HTTP_204_NO_CONTENT, summary="Remove the FreeD output",

@@ -1,7 +1,8 @@
 """JSON request bodies, parsed and validated in a worker thread rather than on the event
 loop (`JsonBodyRoute`), so that a large body does not hold up every other client: the
 body is bounded first (``max_json_bytes``, by `app.middleware.BodyLimit`), its objects
-by `app.schemas.MAX_JSON_KEYS`, its lists by the models' own bounds."""
+by `app.schemas.MAX_JSON_KEYS`, its lists by the models' own bounds. A body of any other
+type is refused (415)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any
 
 import anyio
-from fastapi import params
+from fastapi import HTTPException, params
 from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 from pydantic import TypeAdapter, ValidationError
@@ -33,7 +34,10 @@ class JsonBodyRoute(APIRoute):
 
         async def parsed_first(request: Request) -> Response:
             if not _is_json(request.headers.get("content-type")):
-                return await handler(request)  # FastAPI refuses it with its own message
+                # Before the body is read. A page of another origin can send a form or a
+                # text/plain body without asking the service first (a CORS preflight,
+                # which the service never grants); it cannot send JSON.
+                raise HTTPException(415, "the body must be JSON, sent with Content-Type: application/json")
             body = await request.body()
             if not body:
                 return await handler(request)

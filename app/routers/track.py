@@ -12,7 +12,9 @@ from app.routers.json_bodies import JsonBodyRoute
 from app.routers.responses import IMAGE_REFUSED, NO_MAP, invalid, not_found
 from app.routers.uploads import IMAGE_BODY_DOC, read_image_body
 from app.schemas import LocateResponse, TrackCloseCode, TrackConfig, TrackRefusal, TrackServerMessage
-from app.services.streaming import ClientGone, Refused
+from app.services import keys
+from app.services.rate_limits import client_address
+from app.services.streaming import ClientGone, Refused, TrackClient
 
 router = APIRouter(tags=["tracking"], route_class=JsonBodyRoute)
 
@@ -51,7 +53,11 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
     A client over ``max_track_fps`` loses its excess frames the same way (never the
     newest) and gets at most one ``rate_limited`` error a second; connections beyond
     ``max_track_connections`` (of the whole service, every server process together) are
-    closed with 1013 (try again later).
+    closed with 1013 (try again later), and so are those of a client address or API key
+    beyond its share (``max_track_connections_per_address``, ``_per_key``) or opened
+    faster than its rate (``track_open_rate_per_address``, ``_per_key``: the refusal says
+    ``retry_after_s``). A connection whose API key is revoked is closed within a few
+    seconds (``key_revoked``, 1008).
 
     When the environment's map or classifier changes while a connection is open (a
     survey, an import, an alignment), the connection switches to it within
@@ -72,12 +78,19 @@ async def track(websocket: WebSocket, streams: TrackStreamsDep, environment_id: 
     channel = _WebSocketChannel(websocket)
     try:
         async with streams.connection():
-            await streams.serve(channel, _environment_id(environment_id))
+            await streams.serve(channel, _environment_id(environment_id), _client(websocket))
     except Refused as refused:
         with contextlib.suppress(ClientGone):
             await channel.refuse(refused.refusal)
     except ClientGone:
         pass  # the client left before the first message reached it: nothing to answer
+
+
+def _client(websocket: WebSocket) -> TrackClient:
+    """The connection's client address and, with API keys on, its key as the gate verified it."""
+    client = websocket.scope.get("client")
+    credential = websocket.scope.get("state", {}).get(keys.CREDENTIAL_STATE)
+    return TrackClient(client_address(client[0] if client else None), credential)
 
 
 def _environment_id(text: str | None) -> int:

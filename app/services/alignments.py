@@ -1,5 +1,7 @@
 """Alignment of a surveyed map to world coordinates (replaces the map in one transaction,
-keeping the one it replaces as a version).
+keeping the one it replaces as a version). The fit is made under the map's write lock
+(`environments.replace_map`), on the map as it is then: never on one a write has replaced
+meanwhile.
 
 A fit that cannot be right is refused unless forced: a point the fit leaves far from
 where it was said to be (a wrong card id, disc number or coordinate), or a fitted scale
@@ -7,13 +9,15 @@ far from 1 (a surveyed map is metric: its scale comes from the printed card size
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from sqlalchemy.orm import Session
 
 from app.core.geometry import Similarity, similarity_from_points, target_origin_alignment
 from app.schemas import AlignmentRequest, AlignmentResidual, AlignmentResult, MapChange, MapDocument
 from app.services import environments
-from app.services.errors import Invalid
+from app.services.errors import Invalid, NoMap
 
 #: A point's residual is refused beyond this many metres: a world position measured with a
 #: tape, a laser or a total station is good to a centimetre or better...
@@ -37,8 +41,31 @@ def _transform(document: MapDocument, similarity: Similarity) -> MapDocument:
     return MapDocument.model_validate(data)
 
 
-def align(session: Session, environment_id: int, spec: AlignmentRequest) -> AlignmentResult:
-    document = environments.get_map(session, environment_id)
+class Alignment(NamedTuple):
+    """An alignment stored: its result, and the revision of the map it stored."""
+
+    result: AlignmentResult
+    revision: int
+
+
+def align(session: Session, environment_id: int, spec: AlignmentRequest, *,
+          if_match: environments.IfMatch | None = None) -> Alignment:
+    """Fit `spec` to the environment's current map and store the map moved into the world
+    (`environments.replace_map`: PreconditionFailed when the map does not meet `if_match`)."""
+    fitted: list[AlignmentResult] = []
+
+    def aligned(document: MapDocument | None) -> MapDocument:
+        if document is None:
+            raise NoMap(environment_id)
+        fitted.append(_fit(document, spec))
+        return fitted[-1].map
+
+    stored = environments.replace_map(session, environment_id, MapChange.ALIGNMENT, aligned, if_match=if_match)
+    return Alignment(fitted[-1], stored.revision)
+
+
+def _fit(document: MapDocument, spec: AlignmentRequest) -> AlignmentResult:
+    """The transform `spec` asks for, fitted to `document`, and the map it moves."""
     discs = {t.id: np.asarray(t.discs, np.float64) for t in document.targets}
     residuals: list[AlignmentResidual] = []
     try:
@@ -62,11 +89,10 @@ def align(session: Session, environment_id: int, spec: AlignmentRequest) -> Alig
             similarity = target_origin_alignment(discs[spec.origin_target_id])
     except ValueError as exc:
         raise Invalid(f"points: {exc}") from None
-    aligned = _transform(document, similarity)
-    environments.put_map(session, environment_id, aligned, MapChange.ALIGNMENT)
     rms = float(np.sqrt(np.mean([r.residual_m**2 for r in residuals]))) if residuals else 0.0
     return AlignmentResult(scale=float(similarity.scale), R=np.asarray(similarity.R).tolist(),
-                           t=np.asarray(similarity.t).tolist(), residuals=residuals, rms_m=rms, map=aligned)
+                           t=np.asarray(similarity.t).tolist(), residuals=residuals, rms_m=rms,
+                           map=_transform(document, similarity))
 
 
 def _refuse_implausible(document: MapDocument, residuals: list[AlignmentResidual], scale: float) -> None:

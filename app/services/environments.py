@@ -1,20 +1,57 @@
-"""Environments and their maps: each public function is one transaction."""
+"""Environments and their maps: each public function is one transaction.
+
+Every change of a map goes through `replace_map`: under the write lock on the environment
+it reads the current map, checks the writer's precondition (``If-Match``) against its
+revision, makes the new map, keeps the current one as a version and stores the new one
+at the next revision. Writers are so serialised: none works from a map another has
+replaced meanwhile, and each map replaced is kept once."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.markers import get_family
-from app.db import utcnow
+from app.db import lock_row_for_writing, utcnow
 from app.models import Environment, MapVersion, SurveyMap
 from app.schemas import (EnvironmentCreate, EnvironmentOut, EnvironmentUpdate, MapChange, MapDocument,
                          MapVersionOut)
 from app.services import classifiers
-from app.services.errors import Conflict, Invalid, NoMap, NotFound, can_match, get_or_404
+from app.services.errors import Conflict, Invalid, NoMap, NotFound, PreconditionFailed, can_match, get_or_404
 
 #: Earlier maps kept per environment (`MapVersion`), the newest first.
 MAP_VERSIONS_KEPT = 20
+
+
+@dataclass(frozen=True)
+class MapRevision:
+    """An environment's map and its revision: a number that grows by one with every
+    change of the map (the ``ETag`` of the map's replies)."""
+
+    document: MapDocument
+    revision: int
+
+
+@dataclass(frozen=True)
+class IfMatch:
+    """What a conditional write requires of the map it replaces (HTTP ``If-Match``): any
+    map (``*``), or the map at one of `revisions`. No map at all meets neither."""
+
+    revisions: frozenset[int] = frozenset()
+    any_map: bool = False
+
+    def met_by(self, revision: int | None) -> bool:
+        return revision is not None and (self.any_map or revision in self.revisions)
+
+    def __str__(self) -> str:
+        return "*" if self.any_map else ", ".join(f'"{r}"' for r in sorted(self.revisions)) or "no revision of it"
+
+
+#: What a writer makes the new map of: the current one (None without one).
+NewMap = Callable[[MapDocument | None], MapDocument]
 
 
 def to_out(environment: Environment, has_map: bool) -> EnvironmentOut:
@@ -92,54 +129,100 @@ def delete(session: Session, environment_id: int) -> None:
     session.commit()
 
 
-def get_map(session: Session, environment_id: int) -> MapDocument:
+def get_map(session: Session, environment_id: int) -> MapRevision:
     get_row(session, environment_id)
     stored = stored_map(session, environment_id)
     if stored is None:
         raise NoMap(environment_id)
-    return MapDocument.model_validate(stored.document)
+    return MapRevision(MapDocument.model_validate(stored.document), stored.revision)
 
 
-def put_map(session: Session, environment_id: int, document: MapDocument,
-            change: MapChange = MapChange.IMPORT) -> MapDocument:
-    """Replace the environment's map whole, in one transaction; a refused document
-    leaves the stored map as it was, and the map it replaces is kept as a version."""
-    stage_map(session, environment_id, document, change)
+def replace_map(session: Session, environment_id: int, change: MapChange, new_map: MapDocument | NewMap, *,
+                if_match: IfMatch | None = None, commit: bool = True) -> MapRevision:
+    """Replace the environment's map: the one way a map changes (see the module docstring).
+
+    Under the write lock on the environment (`lock_row_for_writing`, held until the
+    transaction ends), reads the current map, refuses with PreconditionFailed when it
+    does not meet `if_match`, makes the new map (`new_map`, or `new_map(current)`), checks
+    it against the environment, keeps the current map as a version (`change` says what
+    replaced it) and stores the new one at the next revision. What the session holds is
+    committed first: the lock is taken as the transaction begins. With `commit` False
+    the caller commits (a survey job commits the map with its own success)."""
     session.commit()
-    return document
+    try:
+        environment = lock_row_for_writing(session, Environment, environment_id) if can_match(environment_id) else None
+        if environment is None:
+            raise NotFound(f"environment {environment_id} not found")
+        stored = session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id)
+                                .execution_options(populate_existing=True))
+        if if_match is not None and not if_match.met_by(stored.revision if stored is not None else None):
+            raise _precondition_failed(environment_id, stored, if_match)
+        if isinstance(new_map, MapDocument):
+            document = new_map
+        else:
+            document = new_map(MapDocument.model_validate(stored.document) if stored is not None else None)
+        _check_family(environment, document)
+        if stored is None:
+            stored = SurveyMap(environment_id=environment_id, revision=1)
+            session.add(stored)
+        else:
+            _keep_version(session, stored, change)
+            stored.revision += 1
+        stored.frame = document.frame
+        stored.n_targets = len(document.targets)
+        stored.rms_px = document.rms_px
+        stored.survey_job_id = document.survey_job_id
+        stored.document = document.model_dump(mode="json")
+        # The map is part of the environment: its row's own onupdate sees only its columns.
+        environment.updated_at = utcnow()
+        revision = stored.revision
+        if commit:
+            session.commit()
+    except BaseException:
+        if commit:
+            session.rollback()  # the write lock goes now, not when the session closes
+        raise
+    return MapRevision(document, revision)
 
 
-def stage_map(session: Session, environment_id: int, document: MapDocument, change: MapChange) -> None:
-    """Check `document` against the environment and stage it as the new map, keeping the
-    map it replaces as a version (`change` says what replaced it); the caller commits (a
-    survey job commits it together with its own success)."""
-    environment = get_row(session, environment_id)
+def _precondition_failed(environment_id: int, stored: SurveyMap | None, if_match: IfMatch) -> PreconditionFailed:
+    if stored is None:
+        return PreconditionFailed(f"environment {environment_id} has no map, so If-Match ({if_match}) matches "
+                                  "none: nothing was changed; send the map without If-Match to store the first one")
+    return PreconditionFailed(
+        f"the map of environment {environment_id} changed since it was read: it is at revision {stored.revision} "
+        f'(ETag "{stored.revision}") and If-Match named {if_match}. Nothing was changed: read the map again (GET '
+        ".../map gives its ETag), redo the change on it and send it with that ETag in If-Match")
+
+
+def put_map(session: Session, environment_id: int, document: MapDocument, change: MapChange = MapChange.IMPORT,
+            *, if_match: IfMatch | None = None) -> MapRevision:
+    """Replace the environment's map whole with `document` (`replace_map`): a refused
+    document leaves the stored map as it was, and the map it replaces is kept as a version."""
+    return replace_map(session, environment_id, change, document, if_match=if_match)
+
+
+def stage_map(session: Session, environment_id: int, document: MapDocument, change: MapChange) -> MapRevision:
+    """`put_map` that the caller commits (a survey job commits the map together with its
+    own success); the write lock is held until it does."""
+    return replace_map(session, environment_id, change, document, commit=False)
+
+
+def _check_family(environment: Environment, document: MapDocument) -> None:
+    """Invalid when a target of `document` is outside the environment's marker family."""
     family = get_family(environment.marker_family)
     outside = sorted(t.id for t in document.targets if t.id >= len(family))
     if outside:
         raise Invalid(
             f"targets: ids {outside[:10]} are outside family {family.name} (0..{len(family) - 1})"
         )
-    stored = stored_map(session, environment_id)
-    if stored is None:
-        stored = SurveyMap(environment_id=environment_id)
-        session.add(stored)
-    else:
-        _keep_version(session, stored, change)
-    stored.frame = document.frame
-    stored.n_targets = len(document.targets)
-    stored.rms_px = document.rms_px
-    stored.survey_job_id = document.survey_job_id
-    stored.document = document.model_dump(mode="json")
-    # The map is part of the environment: its row's own onupdate sees only its columns.
-    environment.updated_at = utcnow()
 
 
 def _keep_version(session: Session, stored: SurveyMap, change: MapChange) -> None:
     """Keep the map about to be replaced; drop the versions beyond `MAP_VERSIONS_KEPT`."""
     session.add(MapVersion(environment_id=stored.environment_id, frame=stored.frame, n_targets=stored.n_targets,
-                           survey_job_id=stored.survey_job_id, document=stored.document, replaced_by=change.value,
-                           replaced_at=utcnow()))
+                           survey_job_id=stored.survey_job_id, document=stored.document, revision=stored.revision,
+                           replaced_by=change.value, replaced_at=utcnow()))
     session.flush()
     old = session.scalars(select(MapVersion).where(MapVersion.environment_id == stored.environment_id)
                           .order_by(MapVersion.id.desc()).offset(MAP_VERSIONS_KEPT)).all()
@@ -153,21 +236,26 @@ def map_versions(session: Session, environment_id: int) -> list[MapVersionOut]:
     rows = session.scalars(select(MapVersion).where(MapVersion.environment_id == environment_id)
                            .order_by(MapVersion.id.desc())).all()
     return [MapVersionOut(version=row.id, frame=row.frame, n_targets=row.n_targets,  # type: ignore[arg-type]
-                          survey_job_id=row.survey_job_id, replaced_by=MapChange(row.replaced_by),
+                          survey_job_id=row.survey_job_id, revision=row.revision, replaced_by=MapChange(row.replaced_by),
                           replaced_at=row.replaced_at) for row in rows]
 
 
-def restore_map(session: Session, environment_id: int, version: int | None) -> MapDocument:
-    """Make an earlier map (the newest if `version` is None) the environment's map again;
-    the map it replaces is kept as a version in turn, so a restore loses nothing either."""
-    get_row(session, environment_id)
-    query = select(MapVersion).where(MapVersion.environment_id == environment_id)
-    if version is None:
-        row = session.scalar(query.order_by(MapVersion.id.desc()).limit(1))
-        if row is None:
-            raise Conflict(f"environment {environment_id} has no earlier map to restore")
-    else:
-        row = session.scalar(query.where(MapVersion.id == version)) if can_match(version) else None
-        if row is None:
-            raise NotFound(f"environment {environment_id} has no map version {version}")
-    return put_map(session, environment_id, MapDocument.model_validate(row.document), MapChange.RESTORE)
+def restore_map(session: Session, environment_id: int, version: int | None, *,
+                if_match: IfMatch | None = None) -> MapRevision:
+    """Make an earlier map (the newest if `version` is None) the environment's map again
+    (`replace_map`); the map it replaces is kept as a version in turn, so a restore loses
+    nothing either."""
+
+    def earlier(_current: MapDocument | None) -> MapDocument:
+        query = select(MapVersion).where(MapVersion.environment_id == environment_id)
+        if version is None:
+            row = session.scalar(query.order_by(MapVersion.id.desc()).limit(1))
+            if row is None:
+                raise Conflict(f"environment {environment_id} has no earlier map to restore")
+        else:
+            row = session.scalar(query.where(MapVersion.id == version)) if can_match(version) else None
+            if row is None:
+                raise NotFound(f"environment {environment_id} has no map version {version}")
+        return MapDocument.model_validate(row.document)
+
+    return replace_map(session, environment_id, MapChange.RESTORE, earlier, if_match=if_match)

@@ -62,6 +62,12 @@ class NoMap(Conflict):
         return (NoMap, (self.environment_id,))
 
 
+class PreconditionFailed(ServiceError):
+    """A conditional write (``If-Match``) whose condition no longer holds: it changed nothing."""
+
+    status_code = 412
+
+
 class TooMany(ServiceError):
     status_code = 429
 

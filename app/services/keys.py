@@ -13,7 +13,7 @@ import hmac
 import secrets
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -34,6 +34,19 @@ class Principal:
 
     def allows(self, scope: str) -> bool:
         return "admin" in self.scopes or scope in self.scopes
+
+
+#: Where `ApiKeyGate` leaves a request's `Credential`, in its ASGI scope's ``state``.
+CREDENTIAL_STATE = "api_key"
+
+
+@dataclass(frozen=True)
+class Credential:
+    """A verified key as the request presented it: a /track connection checks it again
+    while it is open, to close when it is revoked."""
+
+    key: str = field(repr=False)
+    principal: Principal
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,20 @@ class Metrics:
             registry=self.registry,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
         )
+        # Refused before the access log, which does not list them.
+        self.rate_refusals = Counter(
+            "fidotrack_client_rate_refusals",
+            "Requests and /track connections refused over a client's rate, by limit.",
+            ["limit"],
+            registry=self.registry,
+        )
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         self.requests.labels(method, route, str(status)).inc()
         self.latency.labels(method, route).observe(seconds)
+
+    def refused(self, limit: str) -> None:
+        self.rate_refusals.labels(limit).inc()
 
     def exposition(self) -> bytes:
         return generate_latest(self.registry)

@@ -16,7 +16,10 @@ over ``max_track_fps`` loses its excess frames the same way (never the newest) a
 at most one ``rate_limited`` error a second. A changed map is taken between two frames:
 the connection's tracking state starts afresh and a new `TrackHello` (``reason``
 ``map_changed`` or ``classifier_changed``) says so before the first frame posed
-against it.
+against it. A connection opened with an API key has a fourth task, which checks every
+`KEY_CHECK_S` that the key was not revoked (by any process) and ends the connection
+when it was. A client address and an API key may each hold only a share of the
+connections (``max_track_connections_per_address``, ``_per_key``).
 
 The service speaks to the client through a `TrackChannel` (the router's WebSocket) in
 the messages of ``app.schemas`` (`TrackHello`, `TrackFrame`, `TrackConfig`,
@@ -30,6 +33,7 @@ import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator
+from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
 
@@ -54,11 +58,12 @@ from app.schemas import (
     error_summary,
     load_json,
 )
-from app.services import freed
+from app.services import freed, keys
 from app.services.errors import ServiceError
 from app.services.freed import FreeDSender, FreeDUnusable
 from app.services.pose_output import PoseOutput
-from app.services.track_connections import TrackConnections
+from app.services.rate_limits import Limit, TokenBucket
+from app.services.track_connections import ClientAtLimit, TrackConnections
 from app.services.tracking import StreamFrame, TrackingContext, TrackingService, TrackState
 from app.settings import Settings
 
@@ -66,6 +71,9 @@ log = logging.getLogger(__name__)
 
 #: At most one rate_limited (and one freed) error message per this many seconds.
 RATE_LIMIT_NOTICE_S = 1.0
+#: How often an open connection with an API key checks that the key was not revoked, s:
+#: the lifetime of a verified key in the cache, so a revocation closes it within twice this.
+KEY_CHECK_S = keys.VERIFIED_TTL_S
 #: Longest config message, characters (a config with intrinsics has a few hundred): a
 #: longer one is refused before it is parsed.
 MAX_CONFIG_CHARS = 16 * 1024
@@ -97,28 +105,13 @@ class Refused(Exception):
         self.refusal = TrackRefusal(code=code, message=message)
 
 
-class TokenBucket:
-    """``rate`` tokens a second, at most ``burst`` saved up; one token per processed frame."""
+@dataclass(frozen=True)
+class TrackClient:
+    """Who opened a connection: its address as the limits count it
+    (`rate_limits.client_address`) and, with API keys on, its verified key."""
 
-    def __init__(self, rate: float, burst: float) -> None:
-        self.rate = rate
-        self.burst = burst
-        self.tokens = burst
-        self.stamp = time.monotonic()
-
-    def _refill(self) -> None:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
-        self.stamp = now
-
-    def wait_time(self) -> float:
-        """Seconds until a token is available (0 if one is now)."""
-        self._refill()
-        return 0.0 if self.tokens >= 1.0 else (1.0 - self.tokens) / self.rate
-
-    def take(self) -> None:
-        self._refill()
-        self.tokens -= 1.0
+    address: str | None = None
+    credential: keys.Credential | None = None
 
 
 class _Stream:
@@ -146,17 +139,23 @@ class _Stream:
 class TrackStreams:
     """The /track connections of one application (one server process)."""
 
-    def __init__(self, tracking: TrackingService, *, settings: Settings, limiter: anyio.CapacityLimiter) -> None:
+    def __init__(self, tracking: TrackingService, *, settings: Settings, limiter: anyio.CapacityLimiter,
+                 verified_keys: keys.VerifiedKeys | None = None) -> None:
         self.tracking = tracking
         self.settings = settings
         self.limiter = limiter  # the threads that process frames, shared by every connection
+        self.verified_keys = verified_keys or keys.VerifiedKeys()  # the API-key gate's, to see revocations
+        self.freed = freed.FreeDSenders(settings)  # where FreeD may go; host lookups off the API's threads
         self.connections = TrackConnections(tracking.sessions, limit=settings.max_track_connections,
-                                            lease_s=settings.track_connection_lease_s)
+                                            lease_s=settings.track_connection_lease_s,
+                                            per_address=settings.max_track_connections_per_address,
+                                            per_key=settings.max_track_connections_per_key)
 
     def shutdown(self) -> None:
         """Stop renewing this process's connections and delete them from the database (at
         the application's shutdown, while the database is still there)."""
         self.connections.close_all()
+        self.freed.close()
 
     @contextlib.asynccontextmanager
     async def connection(self) -> AsyncIterator[None]:
@@ -167,22 +166,30 @@ class TrackStreams:
         finally:
             logs.connection_id.reset(token)
 
-    async def serve(self, channel: TrackChannel, environment_id: int) -> None:
+    async def serve(self, channel: TrackChannel, environment_id: int, client: TrackClient | None = None) -> None:
         """Track the frames of `channel` against the environment's map until the client
-        leaves: Refused when the environment or its map does not exist, or when the
-        service already holds ``max_track_connections`` connections."""
+        leaves: Refused when the environment or its map does not exist, when the service
+        already holds ``max_track_connections`` connections or `client` its share of them,
+        or when the client's API key is revoked while the connection is open."""
+        client = client or TrackClient()
         context = await self._context(environment_id)
+        key_id = client.credential.principal.key_id if client.credential is not None else None
         try:
-            lease = await anyio.to_thread.run_sync(self.connections.open, environment_id)
+            lease = await anyio.to_thread.run_sync(
+                partial(self.connections.open, environment_id, address=client.address, key_id=key_id))
         except IntegrityError:  # the environment was deleted a moment ago
             raise Refused("unknown_environment", f"environment {environment_id} not found") from None
+        except ClientAtLimit as full:
+            holder = "address" if full.limit == Limit.TRACK_CONNECTIONS_PER_ADDRESS else "API key"
+            raise Refused("client_connections", f"this {holder} already holds {full.share} /track connections, "
+                          "its share of the service's; close one first") from None
         if lease is None:
             raise Refused("too_many_connections",
                           f"the service already tracks {self.connections.limit} connections, its limit for all "
                           "of its server processes together; try again later")
         log.info("track connection opened", extra={"fields": {"environment_id": environment_id}})
         try:
-            await self._track(channel, context)
+            await self._track(channel, context, client)
         finally:
             # Also when the handler is cancelled (server shutdown): the slot must come back.
             with anyio.CancelScope(shield=True):
@@ -199,7 +206,7 @@ class TrackStreams:
         except ServiceError as exc:
             raise Refused("unknown_environment" if exc.status_code == 404 else "no_map", exc.detail) from None
 
-    async def _track(self, channel: TrackChannel, context: TrackingContext) -> None:
+    async def _track(self, channel: TrackChannel, context: TrackingContext, client: TrackClient) -> None:
         environment_id = context.environment_id
         freed_output = await anyio.to_thread.run_sync(self._freed_output, environment_id)
         await channel.send(_hello(context, "connected"))
@@ -212,6 +219,8 @@ class TrackStreams:
         tasks = {asyncio.create_task(self._receive(channel, stream)),
                  asyncio.create_task(self._process(channel, stream)),
                  asyncio.create_task(self._watch_map(stream))}
+        if client.credential is not None:
+            tasks.add(asyncio.create_task(self._watch_key(client.credential)))
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:  # also when this handler is cancelled (server shutdown)
@@ -251,6 +260,29 @@ class TrackStreams:
                 stream.next_context = context
                 stream.wake.set()
 
+    async def _watch_key(self, credential: keys.Credential) -> None:
+        """Every `KEY_CHECK_S`, whether the connection's API key still holds: from the
+        cache of verified keys, which a revocation through this process empties, else
+        from the database, where any process revokes it. A revoked key ends the connection
+        (``key_revoked``, close code 1008)."""
+        while True:
+            await asyncio.sleep(KEY_CHECK_S)
+            if self.verified_keys.get(credential.key) is not None:
+                continue
+            try:
+                principal = await anyio.to_thread.run_sync(self._verify_key, credential.key)
+            except Exception as exc:  # a busy database: the connection goes on until the next check
+                log.warning("track: could not check the connection's API key: %r", exc)
+                continue
+            if principal is None:
+                raise Refused("key_revoked", f"API key {credential.principal.name!r} was revoked: the connection "
+                              "is closed")
+            self.verified_keys.remember(credential.key, principal)
+
+    def _verify_key(self, key: str) -> keys.Principal | None:
+        with self.tracking.sessions() as session:
+            return keys.verify(session, key)
+
     async def _take_new_map(self, channel: TrackChannel, stream: _Stream) -> None:
         """Switch to the changed context, between two frames: the poses so far were in the
         old map (and its tracked regions, filter and prediction with them), so tracking
@@ -273,12 +305,13 @@ class TrackStreams:
             return freed.find(session, environment_id)
 
     async def _use_freed(self, channel: TrackChannel, stream: _Stream, config: TrackConfig) -> None:
-        """Point the connection's FreeD sender where `config` says (FreeDUnusable: it
-        cannot, and the sender is left as it was)."""
-        to = freed.destination(config.freed, stream.freed_output, self.settings.freed_connection_receivers)
+        """Point the connection's FreeD sender where `config` says, its host resolved and
+        checked before any packet goes (FreeDUnusable: it cannot, not there or not in
+        time, and the sender is left as it was)."""
+        to = freed.destination(config.freed, stream.freed_output, self.freed.policy.connection_receivers)
         if stream.sender is not None and stream.sender.to == to:
             return
-        sender = None if to is None else await anyio.to_thread.run_sync(FreeDSender.open, to)
+        sender = None if to is None else await self.freed.open(to)
         if stream.sender is not None:
             stream.sender.close()
         stream.sender = sender

@@ -1,8 +1,11 @@
 """Surveys: a calibration video (or a set of images) in, the environment's map out.
 
-The upload is checked whole in the request (container allow-list by magic bytes,
-OpenCV can open it and read a first frame, resolution and length within the limits;
-images decodable by header), stored under server-chosen names and handed to a job.
+The upload is written straight into the job's upload folder as it arrives, under
+server-chosen names (`SurveyUpload`, `app.services.uploads`), and checked in the request
+as far as it can be: the container allow-list by magic bytes and the images' declared
+sizes as the bytes come; once the file is whole, OpenCV can open it and read a first
+frame, resolution and length within the limits, every Motion JPEG frame's declared size
+within them too; images decodable. Then it is handed to a job.
 The job, in a worker process, detects targets in the chosen frames with the
 environment's classifier, runs structure from motion (`app.core.survey`) and stores
 the map in the same transaction that marks the job succeeded: a failed or cancelled
@@ -12,12 +15,11 @@ survey leaves the previous map untouched.
 from __future__ import annotations
 
 import json
-import shutil
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, Literal
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -26,16 +28,16 @@ from sqlalchemy.orm import Session
 
 from app.core.detection import DetectedTarget, Detector
 from app.core.geometry import Camera
-from app.core.imagecodec import PNG_MAGIC, decode_gray
+from app.core.imagecodec import ImageError, decode_gray, peek_size
 from app.core.features import FeatureTracker, exclusion_mask
 from app.core.survey import FeatureObservations, SurveyError, survey
 from app.schemas import CameraModel, JobOut, MapChange, MapDocument
 from app.services import classifiers, environments, images, jobs
 from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia
 from app.services.jobs import JobContext, JobKind, JobResult, JobRunner, job_handler
+from app.services.uploads import FilePart, ImagePart, StoredFile
 from app.settings import Settings
 
-_CHUNK = 1024 * 1024
 #: ISO base media (MP4, MOV) box types that may open a file.
 _ISO_BOXES = (b"ftyp", b"moov", b"mdat", b"wide", b"free", b"skip", b"pnot")
 #: Codecs OpenCV's FFmpeg backend reads reliably (FOURCC as OpenCV reports it).
@@ -43,6 +45,9 @@ ALLOWED_CODECS = frozenset({
     "avc1", "h264", "H264", "x264", "X264", "hev1", "hvc1", "hevc", "HEVC", "mp4v", "MP4V", "FMP4", "XVID", "xvid",
     "DIVX", "MJPG", "mjpg", "jpeg", "MJPEG", "vp09", "VP90", "av01", "AV01",
 })
+#: Codecs of Motion JPEG (FOURCC as OpenCV reports it): every packet is one JPEG, whose
+#: size its header declares, so a frame is checked against the limits before it is decoded.
+MJPEG_CODECS = frozenset({"MJPG", "mjpg", "jpeg", "MJPEG"})
 
 
 @dataclass(frozen=True)
@@ -63,19 +68,6 @@ def video_container(head: bytes) -> str | None:
     return None
 
 
-def _save_stream(stream: BinaryIO, path: Path, limit: int, budget: list[int]) -> int:
-    """Copy an upload to `path` in chunks; 413 once the whole upload passes `limit`."""
-    written = 0
-    with path.open("wb") as out:
-        while chunk := stream.read(_CHUNK):
-            written += len(chunk)
-            budget[0] += len(chunk)
-            if budget[0] > limit:
-                raise TooLarge(f"upload exceeds the limit of {limit} bytes")
-            out.write(chunk)
-    return written
-
-
 def probe_video(path: Path, settings: Settings) -> VideoInfo:
     """Open a stored video with OpenCV and check it against the limits (4xx if not)."""
     with path.open("rb") as fh:
@@ -90,8 +82,7 @@ def probe_video(path: Path, settings: Settings) -> VideoInfo:
         height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
         frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
-        fourcc = int(capture.get(cv2.CAP_PROP_FOURCC))
-        codec = "".join(chr((fourcc >> (8 * i)) & 0xFF) for i in range(4)).strip("\x00 ")
+        codec = _codec(capture)
         if width <= 0 or height <= 0:
             raise Invalid("video: no video stream")
         if width * height > settings.max_video_pixels:
@@ -105,7 +96,45 @@ def probe_video(path: Path, settings: Settings) -> VideoInfo:
             raise Invalid("video: no frame could be decoded (corrupt or truncated file?)")
     finally:
         capture.release()
+    if codec in MJPEG_CODECS:
+        for index, size in _mjpeg_frame_sizes(path):
+            if size is not None and size[0] * size[1] > settings.max_video_pixels:
+                raise TooLarge(f"video: frame {index} is {size[0]}x{size[1]}, over the limit of "
+                               f"{settings.max_video_pixels} pixels")
     return VideoInfo(width, height, frames, fps, codec)
+
+
+def _codec(capture: cv2.VideoCapture) -> str:
+    fourcc = int(capture.get(cv2.CAP_PROP_FOURCC))
+    return "".join(chr((fourcc >> (8 * i)) & 0xFF) for i in range(4)).strip("\x00 ")
+
+
+def _raw_packet(capture: cv2.VideoCapture) -> bytes | None:
+    """The packet `grab` read, undecoded (the capture in raw mode: ``CAP_PROP_FORMAT`` -1)."""
+    ok, packet = capture.retrieve()
+    return packet.tobytes() if ok and packet is not None else None
+
+
+def _declared_size(packet: bytes | None) -> tuple[int, int] | None:
+    """(width, height) a Motion JPEG packet declares, None when it declares none."""
+    try:
+        return peek_size(packet) if packet else None
+    except ImageError:
+        return None
+
+
+def _mjpeg_frame_sizes(path: Path) -> Iterator[tuple[int, tuple[int, int] | None]]:
+    """(index, declared size) of every frame of a Motion JPEG video, read from its
+    packets' headers: nothing is decoded."""
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        capture.set(cv2.CAP_PROP_FORMAT, -1)
+        index = 0
+        while capture.grab():
+            yield index, _declared_size(_raw_packet(capture))
+            index += 1
+    finally:
+        capture.release()
 
 
 #: How far a survey's given intrinsics may differ in aspect ratio (width / height) from
@@ -143,95 +172,118 @@ class SurveyParams(BaseModel):
     family: str
     max_pixels: int
     feature_tracks: bool = False  # track the scene's own points beside the cards
+    max_video_pixels: int | None = None  # largest frame of a video (None: max_pixels)
+
+
+class VideoPart(StoredFile):
+    """The survey's video: its container recognised from its first bytes, then probed
+    whole (`probe_video`)."""
+
+    def __init__(self, path: Path, settings: Settings) -> None:
+        super().__init__(path, "video", settings.max_upload_bytes)
+        self.settings = settings
+        self.info: VideoInfo | None = None
+
+    def check_head(self, head: bytes, *, final: bool) -> None:
+        if video_container(head) is None:
+            raise UnsupportedMedia("video: not an MP4, MOV or AVI file (unrecognised container)")
+
+    def check_whole(self) -> None:
+        self.info = probe_video(self.path, self.settings)
+
+
+class SurveyUpload:
+    """The files of a survey's form, written into the job's upload folder as they
+    arrive (an `app.services.uploads.UploadTarget`): one ``video``, or ``images`` of one
+    size stored as ``image_NNNNN.png|jpg``."""
+
+    def __init__(self, folder: Path, settings: Settings, memory: images.MemoryBudget) -> None:
+        self.folder = folder
+        self.settings = settings
+        self.memory = memory
+        self.video: VideoPart | None = None
+        self.images = 0
+        self.image_size: tuple[int, int] | None = None
+
+    def open_file(self, field: str) -> FilePart | None:
+        if field not in ("video", "images"):
+            return None
+        if self.video is not None or (field == "video" and self.images):
+            raise Invalid("give either a 'video' file or one or more 'images' files")
+        if field == "video":
+            self.video = VideoPart(self.folder / "video", self.settings)
+            return self.video
+        if self.images >= self.settings.max_survey_images:
+            raise Invalid(f"images: at most {self.settings.max_survey_images} images per survey")
+        index, self.images = self.images, self.images + 1
+        return ImagePart(self.folder / f"image_{index:05d}", f"images[{index}]", self.settings, self.memory,
+                         lambda _path, width, height: self._image_stored(index, width, height))
+
+    def _image_stored(self, index: int, width: int, height: int) -> None:
+        if self.image_size is None:
+            self.image_size = (width, height)
+        elif self.image_size != (width, height):
+            first = self.image_size
+            raise Invalid(f"images[{index}]: {width}x{height} differs from the first image's {first[0]}x{first[1]}; "
+                          "one camera, one resolution")
+
+
+def check_environment(session: Session, environment_id: int) -> None:
+    """404 for an unknown environment: before a survey's upload is read."""
+    environments.get_row(session, environment_id)
 
 
 def submit_survey(
     session: Session,
     runner: JobRunner,
     settings: Settings,
-    memory: images.MemoryBudget,
     environment_id: int,
+    upload: SurveyUpload,
     *,
-    video: BinaryIO | None,
-    images: Sequence[BinaryIO],
+    job_id: str,
     marker_size_m: float | None,
     intrinsics: str | None,
     max_frames: int | None,
     feature_tracks: bool = False,
 ) -> JobOut:
-    """Check and store the upload, queue the survey job. Nothing stays on disk and no
-    row is written when the upload is refused."""
+    """Queue the survey job of a stored upload (its folder is the job's). The caller
+    removes the folder when this refuses it: no row is written then."""
     environment = environments.get_row(session, environment_id)
-    if (video is None) == (not images):
+    video = upload.video.info if upload.video is not None else None
+    if (video is None) == (upload.image_size is None):
         raise Invalid("give either a 'video' file or one or more 'images' files")
     if marker_size_m is not None and not (0.0 < marker_size_m <= 10.0):
         raise Invalid("marker_size_m: must be in (0, 10] metres")
     if max_frames is not None and not (2 <= max_frames <= settings.max_video_frames):
         raise Invalid(f"max_frames: must be between 2 and {settings.max_video_frames}")
-    if len(images) > settings.max_survey_images:
-        raise Invalid(f"images: at most {settings.max_survey_images} images per survey")
     camera = parse_intrinsics(intrinsics)
     classifier_id = classifiers.for_environment(session, environment)
-    job_id = jobs.new_job_id()
-    folder = jobs.uploads_dir(settings.data_dir, job_id)
-    folder.mkdir(parents=True, exist_ok=True)
-    try:
-        budget = [0]
-        video_path, video_frames = None, None
-        if video is not None:
-            path = folder / "video"
-            _save_stream(video, path, settings.max_upload_bytes, budget)
-            info = probe_video(path, settings)
-            video_path, video_frames, width, height = str(path), info.frames, info.width, info.height
-        else:
-            width, height = _store_images(images, folder, settings, budget, memory)
-        if camera is not None and (camera.width, camera.height) != (width, height):
-            # The same lens at another resolution keeps the image's shape; intrinsics of
-            # another shape are for another camera (or mistyped), not to be stretched.
-            if abs(camera.width * height - camera.height * width) > ASPECT_TOLERANCE * camera.height * width:
-                raise Invalid(f"intrinsics: given for {camera.width}x{camera.height}, whose shape differs from the "
-                              f"upload's {width}x{height}; give them for this camera at any resolution of the "
-                              "same shape")
-            scaled = Camera.from_dict(camera.model_dump()).scaled_to(width, height)
-            camera = CameraModel.model_validate(scaled.to_dict())
-        params = SurveyParams(
-            upload_dir=str(folder), source="video" if video is not None else "images", video=video_path,
-            video_frames=video_frames, width=width, height=height,
-            marker_size_m=float(marker_size_m or environment.marker_size_m), intrinsics=camera,
-            max_frames=int(max_frames or settings.survey_frames), classifier_id=classifier_id,
-            family=environment.marker_family, max_pixels=settings.max_image_pixels, feature_tracks=feature_tracks,
-        )
-        job = runner.submit(session, JobKind.SURVEY, params, environment_id=environment_id, job_id=job_id,
-                            max_active=settings.max_queued_jobs)
-    except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)
-        raise
+    if video is not None:
+        assert upload.video is not None
+        video_path, video_frames, width, height = str(upload.video.path), video.frames, video.width, video.height
+    else:
+        assert upload.image_size is not None
+        video_path, video_frames, (width, height) = None, None, upload.image_size
+    if camera is not None and (camera.width, camera.height) != (width, height):
+        # The same lens at another resolution keeps the image's shape; intrinsics of
+        # another shape are for another camera (or mistyped), not to be stretched.
+        if abs(camera.width * height - camera.height * width) > ASPECT_TOLERANCE * camera.height * width:
+            raise Invalid(f"intrinsics: given for {camera.width}x{camera.height}, whose shape differs from the "
+                          f"upload's {width}x{height}; give them for this camera at any resolution of the "
+                          "same shape")
+        scaled = Camera.from_dict(camera.model_dump()).scaled_to(width, height)
+        camera = CameraModel.model_validate(scaled.to_dict())
+    params = SurveyParams(
+        upload_dir=str(upload.folder), source="video" if video is not None else "images", video=video_path,
+        video_frames=video_frames, width=width, height=height,
+        marker_size_m=float(marker_size_m or environment.marker_size_m), intrinsics=camera,
+        max_frames=int(max_frames or settings.survey_frames), classifier_id=classifier_id,
+        family=environment.marker_family, max_pixels=settings.max_image_pixels, feature_tracks=feature_tracks,
+        max_video_pixels=settings.max_video_pixels,
+    )
+    job = runner.submit(session, JobKind.SURVEY, params, environment_id=environment_id, job_id=job_id,
+                        max_active=settings.max_queued_jobs)
     return jobs.job_out(job)
-
-
-def _store_images(streams: Sequence[BinaryIO], folder: Path, settings: Settings, budget: list[int],
-                  memory: images.MemoryBudget) -> tuple[int, int]:
-    """Store the uploaded images as ``image_NNNNN.png|jpg``, each decodable and all of
-    one size; that (width, height)."""
-    size = None
-    for index, stream in enumerate(streams):
-        path = folder / f"image_{index:05d}"
-        _save_stream(stream, path, settings.max_upload_bytes, budget)
-        data = path.read_bytes()
-        try:
-            with images.decoded(data, settings, memory, detect=False) as gray:
-                shape = gray.shape
-        except ServiceError as exc:
-            exc.detail = f"images[{index}]: {exc.detail}"
-            raise
-        if size is None:
-            size = shape
-        elif shape != size:
-            raise Invalid(f"images[{index}]: {shape[1]}x{shape[0]} differs from the first "
-                          f"image's {size[1]}x{size[0]}; one camera, one resolution")
-        path.rename(path.with_suffix(".png" if data.startswith(PNG_MAGIC) else ".jpg"))
-    assert size is not None
-    return int(size[1]), int(size[0])
 
 
 # --- in the worker process -----------------------------------------------------------
@@ -267,6 +319,10 @@ def read_frames(params: SurveyParams, positions: range | None = None) -> Iterato
         assert params.video is not None
         capture = cv2.VideoCapture(params.video, cv2.CAP_FFMPEG)
         try:
+            # Motion JPEG is read packet by packet, undecoded, and each frame decoded
+            # only once its header's size is known to be within the limit (FFmpeg
+            # decodes any size a later frame declares, and OpenCV scales it to the first's).
+            mjpeg = _codec(capture) in MJPEG_CODECS and capture.set(cv2.CAP_PROP_FORMAT, -1)
             chosen = _chosen(_video_total(params, capture), params.max_frames)
             positions = positions if positions is not None else range(len(chosen))
             if not positions:
@@ -281,9 +337,13 @@ def read_frames(params: SurveyParams, positions: range | None = None) -> Iterato
             last = int(chosen[positions[-1]])
             while index <= last and capture.grab():
                 if index in wanted:
-                    ok, frame = capture.retrieve()
-                    if ok:
-                        yield wanted[index], len(chosen), cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                    if mjpeg:
+                        gray = _mjpeg_frame(params, index, _raw_packet(capture))
+                    else:
+                        ok, frame = capture.retrieve()
+                        gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if ok else None
+                    if gray is not None:
+                        yield wanted[index], len(chosen), gray
                 index += 1
         finally:
             capture.release()
@@ -292,6 +352,27 @@ def read_frames(params: SurveyParams, positions: range | None = None) -> Iterato
         chosen = _chosen(len(files), params.max_frames)
         for position in positions if positions is not None else range(len(chosen)):
             yield position, len(chosen), decode_gray(files[int(chosen[position])].read_bytes(), params.max_pixels)
+
+
+def _mjpeg_frame(params: SurveyParams, index: int, packet: bytes | None) -> np.ndarray | None:
+    """Frame `index` of a Motion JPEG video in greyscale, from its packet, at the video's
+    size; None when it cannot be read. A SurveyError, before anything is decoded, when
+    its header declares more pixels than the limit."""
+    size = _declared_size(packet)
+    if packet is None or size is None:
+        return None
+    limit = params.max_video_pixels or params.max_pixels
+    if size[0] * size[1] > limit:
+        raise SurveyError(f"frame {index} of the video is {size[0]}x{size[1]} pixels, over the limit of {limit} "
+                          f"(the video's first frame is {params.width}x{params.height}); every frame must be "
+                          "within it")
+    gray = cv2.imdecode(np.frombuffer(packet, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        return None
+    if gray.shape != (params.height, params.width):
+        # As FFmpeg's reader gives every frame: at the size of the first.
+        gray = cv2.resize(gray, (params.width, params.height), interpolation=cv2.INTER_AREA)
+    return gray
 
 
 #: Frames in each piece of a survey's detection that a worker of the job engine takes:

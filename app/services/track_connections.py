@@ -6,7 +6,9 @@ Each open connection is a `TrackConnection` row held by the process serving it. 
 process renews its rows' ``seen_at`` every lease / 3 from a thread of its own; a row not
 renewed for a lease (its process died without closing it) is dropped by the next
 admission and stops counting. Admission checks and inserts in one transaction under
-`lock_for_writing`, so two processes cannot both take the last connection.
+`lock_for_writing`, so two processes cannot both take the last connection. A row also
+names its client's address and API key, so that the share each of them may hold
+(``max_track_connections_per_address``, ``_per_key``) holds across processes too.
 """
 
 from __future__ import annotations
@@ -22,18 +24,32 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.db import lock_for_writing, utcnow
 from app.models import TrackConnection
 from app.services.jobs.store import runner_id
+from app.services.rate_limits import Limit
 
 log = logging.getLogger(__name__)
 
 
+class ClientAtLimit(Exception):
+    """The connection's client address or API key already holds `share` connections."""
+
+    def __init__(self, limit: Limit, share: int) -> None:
+        super().__init__(f"{limit}: {share}")
+        self.limit = limit
+        self.share = share
+
+
 class TrackConnections:
     """This process's /track connections against a limit shared by every process on the
-    database. The methods block on the database: call them from a worker thread."""
+    database, and a share of it per client address and per API key (0: none). The methods
+    block on the database: call them from a worker thread."""
 
-    def __init__(self, sessions: sessionmaker[Session], *, limit: int, lease_s: float) -> None:
+    def __init__(self, sessions: sessionmaker[Session], *, limit: int, lease_s: float, per_address: int = 0,
+                 per_key: int = 0) -> None:
         self.sessions = sessions
         self.limit = limit
         self.lease_s = lease_s
+        self.per_address = per_address
+        self.per_key = per_key
         self.server = runner_id()
         self._held: set[str] = set()  # ids of the rows this object opened and has not closed
         self._lock = threading.Lock()
@@ -46,9 +62,10 @@ class TrackConnections:
         with self._lock:
             return len(self._held)
 
-    def open(self, environment_id: int) -> str | None:
-        """Take a connection for `environment_id`: its id, or None when the service already
-        holds `limit` live connections."""
+    def open(self, environment_id: int, *, address: str | None = None, key_id: int | None = None) -> str | None:
+        """Take a connection for `environment_id`, for a client at `address` with API key
+        `key_id` (None: not known): its id, or None when the service already holds `limit`
+        live connections; ClientAtLimit when the address or the key holds its share."""
         now = utcnow()
         lease_id = uuid.uuid4().hex
         with self.sessions() as session:
@@ -59,8 +76,16 @@ class TrackConnections:
             if live >= self.limit:
                 session.commit()  # the stale rows stay dropped
                 return None
+            for limit, share, column, value in ((Limit.TRACK_CONNECTIONS_PER_ADDRESS, self.per_address,
+                                                 TrackConnection.client_address, address),
+                                                (Limit.TRACK_CONNECTIONS_PER_KEY, self.per_key,
+                                                 TrackConnection.key_id, key_id)):
+                if share and value is not None and (session.scalar(
+                        select(func.count()).select_from(TrackConnection).where(column == value)) or 0) >= share:
+                    session.commit()
+                    raise ClientAtLimit(limit, share)
             session.add(TrackConnection(id=lease_id, server=self.server, environment_id=environment_id,
-                                        opened_at=now, seen_at=now))
+                                        opened_at=now, seen_at=now, client_address=address, key_id=key_id))
             session.commit()
         with self._lock:
             self._held.add(lease_id)

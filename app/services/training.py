@@ -4,20 +4,20 @@ finds and verifies become positives, the candidates it rejects hard negatives
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
-from app.core.imagecodec import PNG_MAGIC, decode_gray
+from app.core.imagecodec import decode_gray
 from app.core.markers import FAMILIES
 from app.learning.adapt import adapt_classifier
 from app.schemas import JobOut
 from app.services import classifiers, jobs
 from app.services import images as image_service
-from app.services.errors import Invalid, ServiceError
+from app.services.errors import Invalid
 from app.services.jobs import JobContext, JobKind, JobResult, JobRunner, job_handler
+from app.services.uploads import FilePart, ImagePart
 from app.settings import Settings
 
 
@@ -31,39 +31,44 @@ class TrainingParams(BaseModel):
     max_pixels: int
 
 
-def submit_training(session: Session, runner: JobRunner, settings: Settings, memory: image_service.MemoryBudget, *,
-                    images: list[bytes], name: str, base_classifier_id: int | None, family: str) -> JobOut:
-    """Check the upload whole, store the images under server-chosen names and queue
-    the training job. Nothing is stored when any image is refused."""
+class TrainingUpload:
+    """The images of a training form, written into the job's upload folder as they
+    arrive (an `app.services.uploads.UploadTarget`), as ``image_NNNN.png|jpg``."""
+
+    def __init__(self, folder: Path, settings: Settings, memory: image_service.MemoryBudget) -> None:
+        self.folder = folder
+        self.settings = settings
+        self.memory = memory
+        self.images = 0
+        self.stored = 0
+
+    def open_file(self, field: str) -> FilePart | None:
+        if field != "images":
+            return None
+        if self.images >= self.settings.max_training_images:
+            raise Invalid(f"images: at most {self.settings.max_training_images} images per training job")
+        index, self.images = self.images, self.images + 1
+        return ImagePart(self.folder / f"image_{index:04d}", f"images[{index}]", self.settings, self.memory,
+                         self._image_stored)
+
+    def _image_stored(self, _path: Path, _width: int, _height: int) -> None:
+        self.stored += 1
+
+
+def submit_training(session: Session, runner: JobRunner, settings: Settings, upload: TrainingUpload, *, job_id: str,
+                    name: str, base_classifier_id: int | None, family: str) -> JobOut:
+    """Queue the training job of a stored upload (its folder is the job's; each image
+    was decoded to check it as it was stored). The caller removes the folder when this
+    refuses it: no row is written then."""
     if family not in FAMILIES:
         raise Invalid(f"family: unknown marker family {family!r}; known: {', '.join(FAMILIES)}")
-    if not images:
+    if not upload.stored:
         raise Invalid("images: at least one image is required")
-    if len(images) > settings.max_training_images:
-        raise Invalid(f"images: at most {settings.max_training_images} images per training job")
     base = base_classifier_id if base_classifier_id is not None else classifiers.default_id(session)
     classifiers.get_row(session, base)
-    for index, data in enumerate(images):
-        try:
-            with image_service.decoded(data, settings, memory, detect=False):
-                pass
-        except ServiceError as exc:
-            exc.detail = f"images[{index}]: {exc.detail}"
-            raise
-    job_id = jobs.new_job_id()
-    folder = jobs.uploads_dir(settings.data_dir, job_id)
-    folder.mkdir(parents=True, exist_ok=True)
-    try:
-        for index, data in enumerate(images):
-            suffix = ".png" if data.startswith(PNG_MAGIC) else ".jpg"
-            (folder / f"image_{index:04d}{suffix}").write_bytes(data)
-        params = TrainingParams(upload_dir=str(folder), base_classifier_id=base, name=name, family=family,
-                                max_pixels=settings.max_image_pixels)
-        job = runner.submit(session, JobKind.TRAIN_CLASSIFIER, params, job_id=job_id,
-                            max_active=settings.max_queued_jobs)
-    except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)
-        raise
+    params = TrainingParams(upload_dir=str(upload.folder), base_classifier_id=base, name=name, family=family,
+                            max_pixels=settings.max_image_pixels)
+    job = runner.submit(session, JobKind.TRAIN_CLASSIFIER, params, job_id=job_id, max_active=settings.max_queued_jobs)
     return jobs.job_out(job)
 
 

@@ -121,8 +121,9 @@ def server(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
         name = cluster.new_database()
         request.addfinalizer(lambda: cluster.drop_database(name))  # after the service below stops
         database_url = cluster.url(name)
+    # Thousands of requests from one client, as fast as they go: no request rate limit.
     settings = Settings(data_dir=tmp_path_factory.mktemp("fuzz") / "data", database_url=database_url,
-                        max_image_bytes=256 * 1024, max_image_pixels=5_000_000)
+                        max_image_bytes=256 * 1024, max_image_pixels=5_000_000, request_rate_per_address=0)
     recorder = _Recorder(create_app(settings))
     with TestClient(recorder, raise_server_exceptions=False) as client:  # type: ignore[arg-type]
         env = client.post("/environments", json={"name": "fuzz", "marker_size_m": 0.2})

@@ -22,7 +22,7 @@ def _versions(client: TestClient, env: int) -> list[dict]:
 def test_every_change_keeps_the_map_it_replaces_and_any_can_be_restored(client: TestClient) -> None:
     env = _environment(client)
     assert _versions(client, env) == []
-    nothing = client.post(f"/environments/{env}/map/restore")
+    nothing = client.post(f"/environments/{env}/map/restore", json={})
     assert nothing.status_code == 409 and "no earlier map" in nothing.json()["detail"]
 
     first, second = example_map(3), example_map(2)
@@ -39,7 +39,7 @@ def test_every_change_keeps_the_map_it_replaces_and_any_can_be_restored(client: 
 
     # The last change undone: the map the alignment replaced is back, and the aligned one kept.
     before = client.get(f"/environments/{env}").json()["updated_at"]
-    restored = client.post(f"/environments/{env}/map/restore")
+    restored = client.post(f"/environments/{env}/map/restore", json={})
     assert restored.status_code == 200 and restored.json() == client.get(f"/environments/{env}/map").json()
     assert restored.json()["frame"] == "survey" and len(restored.json()["targets"]) == 2
     assert _versions(client, env)[0]["replaced_by"] == "restore" and _versions(client, env)[0]["frame"] == "world"
@@ -114,4 +114,4 @@ def test_an_alignment_that_cannot_be_right_is_refused_and_changes_nothing(client
     forced = client.post(f"/environments/{env}/alignment", json={"points": wrong, "force": True})
     assert forced.status_code == 200 and forced.json()["map"]["frame"] == "world"
     assert max(r["residual_m"] for r in forced.json()["residuals"]) > 0.1
-    assert client.post(f"/environments/{env}/map/restore").json() == stored
+    assert client.post(f"/environments/{env}/map/restore", json={}).json() == stored

@@ -160,13 +160,13 @@ def test_the_tracking_page_goes_on_in_lock_step_through_a_map_change(
                 "framesent", lambda payload: sent.append(payload) if isinstance(payload, bytes) else None))
             page.goto(f"{server.url}/app/#/environments/{env['id']}/track")
             page.click("#start")
-            page.wait_for_function("window.fidotrack.track.replies.length >= 20", timeout=90_000)
+            page.wait_for_function("() => window.fidotrack.track.replies.length >= 20", timeout=90_000)
             httpx.put(f"{server.url}/environments/{env['id']}/map",
                       json=shifted_map(stamped_walk.map_document, SHIFT)).raise_for_status()
-            page.wait_for_function("window.fidotrack.track.mapChanges === 1", timeout=20_000)
+            page.wait_for_function("() => window.fidotrack.track.mapChanges === 1", timeout=20_000)
             changed_at = page.evaluate("window.fidotrack.track.replies.length")
             # (Frames where the walk shows few cards have no pose: 40 give enough that do.)
-            page.wait_for_function(f"window.fidotrack.track.replies.length >= {changed_at + 40}", timeout=60_000)
+            page.wait_for_function(f"() => window.fidotrack.track.replies.length >= {changed_at + 40}", timeout=60_000)
             page.click("#start")  # stop
             state = page.evaluate("window.fidotrack.track")
             notice = page.locator("#notice").inner_text()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import socket
 from collections.abc import Iterator
+from ipaddress import ip_network
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,15 @@ from app.core.geometry import from_convention
 from app.main import create_app
 from app.settings import Settings
 from tests.routers.conftest import Pan, stream_frames
+
+
+#: The receivers of these tests are on 127.0.0.1, as with a renderer on the server's machine.
+LOOPBACK_RECEIVERS = {"freed_connection_receivers": True, "freed_allowed_networks": [ip_network("127.0.0.1/32")]}
+
+
+@pytest.fixture
+def settings(settings: Settings) -> Settings:
+    return settings.model_copy(update=LOOPBACK_RECEIVERS)
 
 
 @pytest.fixture
@@ -145,7 +155,7 @@ def test_an_unusable_freed_config_is_refused_and_changes_nothing(client: TestCli
 def test_a_server_can_keep_connections_to_the_environments_receiver(tmp_path: Path, pan: Pan,
                                                                     receiver: socket.socket) -> None:
     scene, camera, _, frames, _ = pan
-    settings = Settings(data_dir=tmp_path / "data", freed_connection_receivers=False)
+    settings = Settings(data_dir=tmp_path / "data", **{**LOOPBACK_RECEIVERS, "freed_connection_receivers": False})
     with TestClient(create_app(settings)) as client:
         env = client.post("/environments", json={"name": "studio", "marker_size_m": 0.2}).json()["id"]
         client.put(f"/environments/{env}/map", json=scene.map_document(camera))

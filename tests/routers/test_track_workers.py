@@ -40,6 +40,8 @@ def server(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Server]:
     monkeypatch.setenv("FIDOTRACK_MAX_TRACK_CONNECTIONS", str(LIMIT))
     monkeypatch.setenv("FIDOTRACK_MAP_POLL_S", str(MAP_POLL_S))
     monkeypatch.setenv("FIDOTRACK_MAX_TRACK_FPS", "1000")
+    # Hundreds of connections, all from 127.0.0.1, for the service-wide limit alone.
+    monkeypatch.setenv("FIDOTRACK_TRACK_OPEN_RATE_PER_ADDRESS", "0")
     with running_server(tmp_path / "data", tmp_path / "server.log", command=[*FIDOTRACK_SERVE, "--workers", "2"]) as s:
         yield s
 

@@ -14,9 +14,9 @@ from pydantic import BaseModel
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Job
-from app.services.errors import Busy
+from app.services.errors import Busy, TooMany
 from app.services.jobs import store
-from app.services.jobs.cluster import JOB_RESOURCE, local_cluster
+from app.services.jobs.cluster import JOB_RESOURCE, EngineSetupError, engine_security, local_cluster
 from app.services.jobs.registry import handler_for
 from app.services.jobs.worker import run_job
 from app.settings import Settings
@@ -50,6 +50,18 @@ def task_key(job_id: str) -> str:
     return f"job-{job_id}"
 
 
+class SlotReservation:
+    """A job slot held by an upload being read (`JobRunner.reserve`); released once."""
+
+    def __init__(self, runner: JobRunner) -> None:
+        self._runner: JobRunner | None = runner
+
+    def release(self) -> None:
+        runner, self._runner = self._runner, None
+        if runner is not None:
+            runner._unreserve()
+
+
 class JobRunner:
     """Submits jobs to the job engine (`settings.job_scheduler`, or a local cluster this
     process starts with its first job) and reaps the jobs the engine lost."""
@@ -58,6 +70,9 @@ class JobRunner:
         self.settings = settings
         self._sessions = sessions
         self._lock = threading.Lock()
+        # Job slots held by uploads being read (`reserve`), not yet rows.
+        self._reserve_lock = threading.Lock()
+        self._reserved = 0
         self._cluster = None  # the local cluster, when this process owns one
         self._client = None
         self._stop = threading.Event()
@@ -96,9 +111,11 @@ class JobRunner:
                         self._client = Client(self._cluster, set_as_default=False)
                         log.info("local job cluster at %s", self._cluster.scheduler_address)
                     else:
+                        # TLS with the deployment's certificates for a tls:// scheduler.
+                        security = engine_security(self.settings, self.settings.job_scheduler)
                         self._client = Client(self.settings.job_scheduler, timeout=CONNECT_TIMEOUT_S,
-                                              set_as_default=False)
-                except (OSError, TimeoutError) as exc:
+                                              set_as_default=False, security=security)
+                except (OSError, TimeoutError, EngineSetupError) as exc:
                     raise Busy(f"the job engine at {self.settings.job_scheduler} cannot be reached ({exc}); "
                                "try again later") from None
             return self._client
@@ -108,6 +125,24 @@ class JobRunner:
         """The scheduler's address once connected (the local cluster's once started)."""
         with self._lock:
             return None if self._client is None else self._client.scheduler.address
+
+    def reserve(self, max_active: int) -> SlotReservation:
+        """Hold one of the `max_active` job slots while a job's upload is read, before any
+        of it is: TooMany (429) when the jobs queued or running in the database (every
+        process's) and this process's other reservations fill them. Release it once the
+        job is stored (`submit` counts the slots again, under the table lock) or refused."""
+        with self._reserve_lock:
+            with self._sessions() as session:
+                active = store.count_active(session)
+            if active + self._reserved >= max_active:
+                raise TooMany(f"{active} jobs are queued or running and {self._reserved} more are being uploaded "
+                              f"(the limit is {max_active}); try again later")
+            self._reserved += 1
+        return SlotReservation(self)
+
+    def _unreserve(self) -> None:
+        with self._reserve_lock:
+            self._reserved -= 1
 
     def submit(self, session: Session, kind: str, params: BaseModel, *, environment_id: int | None = None,
                job_id: str | None = None, max_active: int | None = None) -> Job:

@@ -6,13 +6,24 @@ const KEY_STORE = "fidotrack.apiKey";
 /** The service's root, from the page's own address (the app is served under /app/). */
 export const ROOT = new URL("..", document.baseURI).href.replace(/\/$/, "");
 
+/** The API key: the one kept for this tab, else the one remembered on this device; "" for none. */
 export function apiKey() {
-  return localStorage.getItem(KEY_STORE) || "";
+  return sessionStorage.getItem(KEY_STORE) || localStorage.getItem(KEY_STORE) || "";
 }
 
-export function setApiKey(key) {
-  if (key) localStorage.setItem(KEY_STORE, key);
-  else localStorage.removeItem(KEY_STORE);
+/** Whether the key is remembered on this device (kept after the tab closes). */
+export function apiKeyRemembered() {
+  return localStorage.getItem(KEY_STORE) !== null;
+}
+
+/**
+ * Keep `key` for this tab only (sessionStorage: gone when the tab closes) or, when
+ * `remember`, on this device (localStorage). "" forgets the key in both.
+ */
+export function setApiKey(key, remember = false) {
+  sessionStorage.removeItem(KEY_STORE);
+  localStorage.removeItem(KEY_STORE);
+  if (key) (remember ? localStorage : sessionStorage).setItem(KEY_STORE, key);
 }
 
 /** An error the service answered with: its HTTP status and its message. */
@@ -40,11 +51,19 @@ async function failure(response) {
 
 /** A JSON request; resolves to the reply's JSON (null for 204), rejects with ApiError. */
 export async function api(method, path, body) {
-  const init = { method, headers: headers(body === undefined ? {} : { "Content-Type": "application/json" }) };
+  return (await request(method, path, body)).body;
+}
+
+/**
+ * A JSON request with `extra` headers (e.g. If-Match); resolves to { body, headers }: the
+ * reply's JSON (null for 204) and its headers (e.g. ETag). Rejects with ApiError.
+ */
+export async function request(method, path, body, extra = {}) {
+  const init = { method, headers: headers(body === undefined ? extra : { "Content-Type": "application/json", ...extra }) };
   if (body !== undefined) init.body = JSON.stringify(body);
   const response = await fetch(ROOT + path, init);
   if (!response.ok) throw await failure(response);
-  return response.status === 204 ? null : response.json();
+  return { body: response.status === 204 ? null : await response.json(), headers: response.headers };
 }
 
 /** POST raw bytes (an image) and get JSON back. */

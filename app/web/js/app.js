@@ -1,7 +1,7 @@
 // The single-page app: a hash router over the pages, and the state each page exposes on
 // `window.fidotrack` (what is drawn, what the camera streamed) for people and tests alike.
 
-import { apiKey, setApiKey } from "./api.js";
+import { apiKey, apiKeyRemembered, setApiKey } from "./api.js";
 import { notify } from "./dom.js";
 import { detectPage } from "./detect.js";
 import { environmentsPage } from "./environments.js";
@@ -42,8 +42,25 @@ async function route() {
   location.hash = "#/environments";
 }
 
+// The key is kept for this tab unless "remember on this device" is ticked; forgetting it
+// clears it from both stores.
 const keyInput = document.getElementById("api-key");
+const rememberKey = document.getElementById("remember-key");
+const forgetKey = document.getElementById("forget-key");
+function keepKey() {
+  setApiKey(keyInput.value.trim(), rememberKey.checked);
+  forgetKey.hidden = !apiKey();
+}
 keyInput.value = apiKey();
-keyInput.addEventListener("change", () => { setApiKey(keyInput.value.trim()); route(); });
+rememberKey.checked = apiKeyRemembered();
+forgetKey.hidden = !apiKey();
+keyInput.addEventListener("change", () => { keepKey(); route(); });
+rememberKey.addEventListener("change", keepKey);
+forgetKey.addEventListener("click", () => {
+  keyInput.value = "";
+  rememberKey.checked = false;
+  keepKey();
+  route();
+});
 window.addEventListener("hashchange", route);
 route();

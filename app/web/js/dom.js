@@ -1,11 +1,16 @@
 // Small helpers to build the pages' DOM without a framework.
 
-/** An element with attributes (on* keys become listeners) and children. */
+/**
+ * An element with attributes (on* keys become listeners) and children. `style` is set
+ * through the element's style object: the page's Content-Security-Policy refuses style
+ * attributes.
+ */
 export function h(tag, attributes = {}, ...children) {
   const element = document.createElement(tag);
   for (const [name, value] of Object.entries(attributes)) {
     if (value === undefined || value === null || value === false) continue;
     if (name.startsWith("on")) element.addEventListener(name.slice(2), value);
+    else if (name === "style") element.style.cssText = value;
     else if (value === true) element.setAttribute(name, "");
     else element.setAttribute(name, value);
   }

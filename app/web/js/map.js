@@ -1,18 +1,25 @@
 // The map viewer: the surveyed cards in 3D with their ids and precision, the survey's
 // trajectory, a top-down view, and alignment to the world (an origin card, or known
-// points) with its residuals.
+// points) with its residuals. Changes are conditional on the map shown (If-Match with its
+// ETag): a map changed meanwhile is reloaded, not overwritten.
 
-import { api } from "./api.js";
+import { api, request } from "./api.js";
 import { fixed, h, notify } from "./dom.js";
 import { MapView, STD_SCALE_M } from "./scene.js";
 
+/** HTTP status of a write refused because the map changed since the page read it. */
+const MAP_CHANGED = 412;
+
 /**
- * A map and what the viewer draws with it: the card layout, and the survey's camera path
- * while the map is still in the survey's frame (the job keeps the path in that frame).
+ * A map, its revision (etag) and what the viewer draws with it: the card layout, and the
+ * survey's camera path while the map is still in the survey's frame (the job keeps the
+ * path in that frame).
  */
 export async function loadMap(environmentId) {
-  const [environment, map] = await Promise.all([
-    api("GET", `/environments/${environmentId}`), api("GET", `/environments/${environmentId}/map`)]);
+  const [environment, read] = await Promise.all([
+    api("GET", `/environments/${environmentId}`), request("GET", `/environments/${environmentId}/map`)]);
+  const map = read.body;
+  const etag = read.headers.get("ETag");
   const firstId = map.targets.length ? map.targets[0].id : 0;
   const layout = await api("GET", `/markers/${firstId}?family=${environment.marker_family}`);
   let trajectory = [];
@@ -22,7 +29,7 @@ export async function loadMap(environmentId) {
       trajectory = (job.result?.trajectory || []).filter(Boolean).map((pose) => pose.position);
     } catch { /* the job was pruned: the map stands without its trajectory */ }
   }
-  return { environment, map, discsUv: layout.discs, trajectory };
+  return { environment, map, etag, discsUv: layout.discs, trajectory };
 }
 
 /** Points for a point alignment, one per line: "target disc x y z" (disc 0-3, metres). */
@@ -37,9 +44,9 @@ function parsePoints(text) {
 }
 
 export async function mapPage(view, environmentId, focusId) {
-  const loaded = await loadMap(environmentId);
+  let loaded = await loadMap(environmentId);
   const { environment } = loaded;
-  let { map } = loaded;
+  let { map, etag } = loaded;
   const container = h("div", { class: "viewer", id: "map-view" });
   const info = h("div", { id: "map-info" });
   const residuals = h("div", { id: "alignment-residuals" });
@@ -47,7 +54,7 @@ export async function mapPage(view, environmentId, focusId) {
   const viewer = new MapView(container);
   let trajectory = loaded.trajectory;  // in the frame of the map shown
   const state = { environmentId, cards: 0, ids: [], frame: map.frame, trajectory: trajectory.length,
-                  alignment: null, focused: null };
+                  alignment: null, focused: null, etag, reloads: 0 };
   // Frames the 3D view has drawn: it draws only when something changes.
   Object.defineProperty(state, "framesDrawn", { get: () => viewer.frames, enumerable: true });
   window.fidotrack.map = state;
@@ -72,9 +79,36 @@ export async function mapPage(view, environmentId, focusId) {
   const allowScale = h("input", { type: "checkbox" });
   const force = h("input", { type: "checkbox", id: "force-fit" });
 
+  /** A change of the map, sent only over the map shown (If-Match); its reply's ETag kept. */
+  async function change(path, body) {
+    const reply = await request("POST", `/environments/${environmentId}${path}`, body, etag ? { "If-Match": etag } : {});
+    etag = state.etag = reply.headers.get("ETag");
+    return reply.body;
+  }
+
+  /** The map as it is now, after a change was refused because another replaced the one shown. */
+  async function reload() {
+    loaded = await loadMap(environmentId);
+    ({ map, etag } = loaded);
+    trajectory = loaded.trajectory;
+    state.etag = etag;
+    state.alignment = null;
+    state.reloads += 1;
+    draw();
+    residuals.replaceChildren(h("p", { class: "muted", id: "map-reloaded" },
+      "The map changed meanwhile (another survey, import, alignment or restore): this is the map now. " +
+      "Nothing was changed: check it and try again."));
+  }
+
+  async function refused(error) {
+    if (error.status !== MAP_CHANGED) { notify(error.message); return; }
+    notify("The map changed meanwhile, so nothing was changed: reloaded it.");
+    try { await reload(); } catch (failed) { notify(failed.message); }
+  }
+
   async function align(spec) {
     try {
-      const result = await api("POST", `/environments/${environmentId}/alignment`, spec);
+      const result = await change("/alignment", spec);
       state.alignment = { scale: result.scale, rms_m: result.rms_m, residuals: result.residuals };
       map = result.map;
       // The camera path moves with the map: x_world = scale R x + t.
@@ -86,18 +120,18 @@ export async function mapPage(view, environmentId, focusId) {
         result.residuals.length ? h("table", {}, h("tr", {}, h("th", {}, "card"), h("th", {}, "disc"), h("th", {}, "residual (mm)")),
           result.residuals.map((r) => h("tr", {}, h("td", {}, String(r.target_id)), h("td", {}, String(r.disc)),
                                                 h("td", {}, fixed(r.residual_m * 1000, 2))))) : "");
-    } catch (error) { notify(error.message); }
+    } catch (error) { await refused(error); }
   }
 
   async function restore() {
     try {
-      map = await api("POST", `/environments/${environmentId}/map/restore`, {});
+      map = await change("/map/restore", {});
       state.alignment = null;
       residuals.replaceChildren(h("p", { class: "muted" }, "The previous map is back."));
       // The camera path is known in the survey's frame only.
       trajectory = map.frame === "survey" && map.survey_job_id === loaded.map.survey_job_id ? loaded.trajectory : [];
       draw();
-    } catch (error) { notify(error.message); }
+    } catch (error) { await refused(error); }
   }
 
   function describe() {
