@@ -17,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
+from starlette.requests import ClientDisconnect
 
 from app import __version__, logs
 from app.db import make_engine, make_sessionmaker, upgrade_to_head
@@ -32,11 +33,11 @@ from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget, limit_compute_threads
 from app.services.jobs import JobRunner
 from app.services.keys import VerifiedKeys
-from app.services.uploads import UploadsInFlight
 from app.services.metrics import Metrics
 from app.services.rate_limits import ClientRates
 from app.services.streaming import TrackStreams
 from app.services.tracking import DetectorKernels, TrackingService
+from app.services.uploads import UploadsInFlight
 from app.settings import Settings
 
 log = logging.getLogger("app")
@@ -114,6 +115,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(ServiceError)
     async def _service_error(_request: Request, exc: ServiceError) -> JSONResponse:
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_gone(_request: Request, _exc: ClientDisconnect) -> JSONResponse:
+        # A client that left mid-body (or whose body the server cut for coming too slowly)
+        # reads no reply; this one only keeps it out of the error log and the 5xx counts.
+        return JSONResponse({"detail": "the client went away before its request was read"}, status_code=400)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -4,28 +4,14 @@ reloads the map instead of overwriting it."""
 
 from __future__ import annotations
 
-import shutil
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
-import pytest
 
-from tests.conftest import example_map, running_server
+from tests.conftest import NEEDS_CHROMIUM, example_map, running_server
 
-CHROMIUM = shutil.which("chromium")
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium: apt-get install chromium (.ci/run does)")
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as driver:
-        launched = driver.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
-        yield launched
-        launched.close()
+pytestmark = NEEDS_CHROMIUM
 
 
 def test_the_map_page_reloads_a_map_changed_meanwhile_instead_of_overwriting_it(tmp_path: Path,

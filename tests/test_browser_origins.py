@@ -16,10 +16,9 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.conftest import example_map, free_port, running_server
-from tests.test_browser import CHROMIUM, browser, playwright  # noqa: F401 (fixtures)
+from tests.conftest import NEEDS_CHROMIUM, example_map, free_port, running_server
 
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium: apt-get install chromium (.ci/run does)")
+pytestmark = NEEDS_CHROMIUM
 
 #: Frames the other origin's page tries to stream.
 FRAMES = 20
@@ -96,7 +95,7 @@ def _csp_violations(page: Any) -> list[str]:
 
 
 def test_a_page_of_another_origin_can_neither_stream_nor_restore_the_map(
-        tmp_path: Path, browser: Any, other_origin: str) -> None:  # noqa: F811
+        tmp_path: Path, browser: Any, other_origin: str) -> None:
     with running_server(tmp_path / "data", tmp_path / "server.log") as server:
         env = _environment_with_two_maps(server.url)
         before = httpx.get(f"{server.url}/environments/{env}/map").json()
@@ -114,7 +113,7 @@ def test_a_page_of_another_origin_can_neither_stream_nor_restore_the_map(
         assert httpx.get(f"{server.url}/environments/{env}/map/versions").json() == versions
 
 
-def test_the_web_app_works_under_its_policy_from_its_own_origin(tmp_path: Path, browser: Any) -> None:  # noqa: F811
+def test_the_web_app_works_under_its_policy_from_its_own_origin(tmp_path: Path, browser: Any) -> None:
     with running_server(tmp_path / "data", tmp_path / "server.log") as server:
         env = _environment_with_two_maps(server.url)
         page = browser.new_page()
@@ -152,11 +151,11 @@ def test_the_web_app_works_under_its_policy_from_its_own_origin(tmp_path: Path, 
         }""", env)
         assert track["frames"] == 3, track
         page.goto(f"{server.url}/app/#/environments")
-        page.wait_for_selector(f"text=studio", timeout=30_000)
+        page.wait_for_selector("text=studio", timeout=30_000)
         assert errors == [] and violations == []
 
 
-def test_the_key_is_kept_for_the_tab_unless_remembered(tmp_path: Path, browser: Any) -> None:  # noqa: F811
+def test_the_key_is_kept_for_the_tab_unless_remembered(tmp_path: Path, browser: Any) -> None:
     with running_server(tmp_path / "data", tmp_path / "server.log") as server:
         context = browser.new_context()
         page = context.new_page()

@@ -21,7 +21,6 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile as StarletteUploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.requests import ClientDisconnect
 
 from app.middleware import MULTIPART_FRAMING_BYTES
 from app.schemas import JobOut
@@ -166,8 +165,6 @@ async def receive_job_upload(request: Request, settings: Settings, runner: JobRu
         return job
     except (ServiceError, StarletteHTTPException) as exc:
         return refusal(exc, body_read=body_read)
-    except ClientDisconnect:
-        return JSONResponse({"detail": "the client went away"}, status_code=status.HTTP_400_BAD_REQUEST)
     finally:
         if form is not None:
             form.abort()

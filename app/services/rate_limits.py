@@ -146,7 +146,7 @@ def _take(buckets: Buckets | None, client: str | int, limit: Limit, who: str) ->
         return None
     what = "requests" if limit in (Limit.REQUESTS_PER_ADDRESS, Limit.REQUESTS_PER_KEY) else "/track connections"
     return RateRefusal(limit, wait, f"{who} is over its rate of {buckets.rate:g} {what} a second: try again in "
-                                    f"{wait:.1f} s")
+                                    f"{max(wait, 0.1):.1f} s")
 
 
 @functools.lru_cache(maxsize=4096)

@@ -33,7 +33,7 @@ from app.core.features import FeatureTracker, exclusion_mask
 from app.core.survey import FeatureObservations, SurveyError, survey
 from app.schemas import CameraModel, JobOut, MapChange, MapDocument
 from app.services import classifiers, environments, images, jobs
-from app.services.errors import Invalid, ServiceError, TooLarge, UnsupportedMedia
+from app.services.errors import Invalid, TooLarge, UnsupportedMedia
 from app.services.jobs import JobContext, JobKind, JobResult, JobRunner, job_handler
 from app.services.uploads import FilePart, ImagePart, StoredFile
 from app.settings import Settings

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
+import anyio
 import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketTestSession
+from starlette.websockets import WebSocketDisconnect
 
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
@@ -59,3 +62,17 @@ def stream_frames(ws: WebSocketTestSession, frames: list[bytes], config: dict | 
         replies.append(ws.receive_json())
         assert replies[-1]["type"] == "frame", replies[-1]
     return replies
+
+
+def receive(ws: WebSocketTestSession, timeout: float = 20.0) -> dict[str, Any]:
+    """The next JSON message of a TestClient WebSocket; WebSocketDisconnect when the server
+    closed it; a test failure after `timeout` s (never a hung test)."""
+
+    async def next_message() -> dict[str, Any]:
+        with anyio.fail_after(timeout):
+            return await ws._send_rx.receive()  # noqa: SLF001 - TestClient has no timeout of its own
+
+    message = ws.portal.call(next_message)
+    if message["type"] == "websocket.close":
+        raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
+    return json.loads(message["text"])

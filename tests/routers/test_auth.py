@@ -22,7 +22,8 @@ from tests.conftest import example_map
 
 @pytest.fixture
 def secured(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
-    settings = Settings(data_dir=tmp_path / "data", api_keys=True)
+    # (Without the per-address request rate: these tests send every route at once.)
+    settings = Settings(data_dir=tmp_path / "data", api_keys=True, request_rate_per_address=0)
     with TestClient(create_app(settings)) as client:
         with client.app.state.sessionmaker() as session:
             made = {scope: keys.create(session, f"{scope} key", [scope]).key for scope in keys.SCOPES}

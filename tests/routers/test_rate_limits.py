@@ -10,7 +10,6 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-import anyio
 import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
@@ -19,6 +18,7 @@ from app.main import create_app
 from app.services import keys
 from app.settings import Settings
 from tests.conftest import example_map
+from tests.routers.conftest import receive
 
 #: The header a test names its client address in (the app sees it as the ASGI scope's client).
 CLIENT_HEADER = "x-test-client"
@@ -55,19 +55,6 @@ def make_client(tmp_path: Path) -> Iterator[Any]:
             return client
 
         yield make
-
-
-def receive(ws: Any, timeout: float = 20.0) -> dict[str, Any]:
-    """The next JSON message, or WebSocketDisconnect; a test failure after `timeout` s."""
-
-    async def next_message() -> dict[str, Any]:
-        with anyio.fail_after(timeout):
-            return await ws._send_rx.receive()  # noqa: SLF001 - TestClient has no timeout of its own
-
-    message = ws.portal.call(next_message)
-    if message["type"] == "websocket.close":
-        raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
-    return json.loads(message["text"])
 
 
 def _environment(client: TestClient, headers: dict[str, str]) -> int:

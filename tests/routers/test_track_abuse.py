@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import anyio
 import cv2
 import numpy as np
 import pytest
@@ -26,21 +25,9 @@ from app.schemas import TrackConfig
 from app.services.tracking import FrameResult, StreamFrame, TrackingContext
 from app.settings import Settings
 from app.sim import degrade, scenes
+from tests.routers.conftest import receive
 
 MAX_FRAME_BYTES = 256 * 1024
-
-
-def receive(ws: Any, timeout: float = 20.0) -> dict[str, Any]:
-    """The next JSON message, or a test failure after `timeout` s (never a hung test)."""
-
-    async def next_message() -> dict[str, Any]:
-        with anyio.fail_after(timeout):
-            return await ws._send_rx.receive()  # noqa: SLF001 - TestClient has no timeout of its own
-
-    message = ws.portal.call(next_message)
-    if message["type"] == "websocket.close":
-        raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
-    return json.loads(message["text"])
 
 
 #: A scene of three cards, its camera and three frames of it (JPEG).
