@@ -26,7 +26,7 @@ from app.sim.camera_feed import read_frame_index
 from tests.conftest import running_server
 from tests.routers.conftest import Pan
 from tests.test_browser import CHROMIUM, StampedWalk, _camera_browser, _watched_page
-from tests.test_browser import playwright, stamped_walk  # noqa: F401 (fixtures)
+from tests.test_browser import stamped_walk  # noqa: F401 (a fixture)
 
 #: How often the connections of these tests look for a new map, seconds.
 MAP_POLL_S = 0.2
