@@ -102,6 +102,16 @@ class BodyLimit:
         await self.app(scope, counted, send)
 
 
+async def _refuse_websocket(receive: Receive, send: Send, code: int, reason: str, first: str | None = None) -> None:
+    # Accepted, then closed: refused before accepting, a server can only answer the
+    # handshake with a bare HTTP 403, which no WebSocket client can read a reason from.
+    await receive()  # the client's connect
+    await send({"type": "websocket.accept"})
+    if first is not None:
+        await send({"type": "websocket.send", "text": first})
+    await send({"type": "websocket.close", "code": code, "reason": reason})
+
+
 async def _reply(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
     # The connection is closed after the reply: the client may still be sending a body
     # that nobody will read.
@@ -178,7 +188,7 @@ class ApiKeyGate:
         key = presented_key(HTTPConnection(scope))
         principal = state.verified_keys.get(key)
         if principal is None:
-            principal = await anyio.to_thread.run_sync(_verify, state.sessionmaker, key)
+            principal = await anyio.to_thread.run_sync(keys.verify_in, state.sessionmaker, key)
             if principal is not None and key is not None:
                 state.verified_keys.remember(key, principal)
         if principal is not None and principal.allows(needed):
@@ -189,18 +199,11 @@ class ApiKeyGate:
         reason = ("a valid API key is required (header X-API-Key)" if principal is None
                   else f"this API key lacks the {needed!r} scope")
         if scope["type"] == "websocket":
-            await receive()  # the client's connect
-            await send({"type": "websocket.accept"})
-            await send({"type": "websocket.close", "code": WS_POLICY_VIOLATION, "reason": reason})
+            await _refuse_websocket(receive, send, WS_POLICY_VIOLATION, reason)
         elif principal is None:
             await _reply(send, 401, reason, [(b"www-authenticate", b"ApiKey")])
         else:
             await _reply(send, 403, reason)
-
-
-def _verify(sessions: Any, key: str | None) -> keys.Principal | None:
-    with sessions() as session:
-        return keys.verify(session, key)
 
 
 class RequestObserver:
@@ -314,9 +317,7 @@ class OriginGate:
             return
         self.log.info("origin refused", extra={"fields": {"path": scope.get("path"), "reason": reason}})
         if scope["type"] == "websocket":
-            await receive()  # the client's connect
-            await send({"type": "websocket.accept"})
-            await send({"type": "websocket.close", "code": WS_POLICY_VIOLATION, "reason": reason})
+            await _refuse_websocket(receive, send, WS_POLICY_VIOLATION, reason)
         else:
             await _reply(send, 403, reason)
 
@@ -415,10 +416,8 @@ class ClientLimits:
         if scope["type"] == "websocket":
             refusal = TrackRefusal(code="too_many_requests", message=refused.message,
                                    retry_after_s=round(refused.retry_after_s, 3))
-            await receive()  # the client's connect
-            await send({"type": "websocket.accept"})
-            await send({"type": "websocket.send", "text": refusal.model_dump_json()})
-            await send({"type": "websocket.close", "code": refusal.close_code, "reason": refusal.message[:120]})
+            await _refuse_websocket(receive, send, refusal.close_code, refusal.message[:120],
+                                    first=refusal.model_dump_json())
         else:
             await _reply(send, 429, refused.message, [(b"retry-after", refused.retry_after_header)])
 

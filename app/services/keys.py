@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.db import utcnow
 from app.models import ApiKey
@@ -87,6 +87,12 @@ def verify(session: Session, key: str | None) -> Principal | None:
     if row is None or not matches or row.revoked_at is not None:
         return None
     return Principal(row.id, row.name, frozenset(row.scopes))
+
+
+def verify_in(sessions: sessionmaker[Session], key: str | None) -> Principal | None:
+    """`verify` in a session of its own (for the gate and open connections, off the event loop)."""
+    with sessions() as session:
+        return verify(session, key)
 
 
 #: How long a verified key is taken as valid without asking the database again, s.

@@ -270,7 +270,7 @@ class TrackStreams:
             if self.verified_keys.get(credential.key) is not None:
                 continue
             try:
-                principal = await anyio.to_thread.run_sync(self._verify_key, credential.key)
+                principal = await anyio.to_thread.run_sync(keys.verify_in, self.tracking.sessions, credential.key)
             except Exception as exc:  # a busy database: the connection goes on until the next check
                 log.warning("track: could not check the connection's API key: %r", exc)
                 continue
@@ -278,10 +278,6 @@ class TrackStreams:
                 raise Refused("key_revoked", f"API key {credential.principal.name!r} was revoked: the connection "
                               "is closed")
             self.verified_keys.remember(credential.key, principal)
-
-    def _verify_key(self, key: str) -> keys.Principal | None:
-        with self.tracking.sessions() as session:
-            return keys.verify(session, key)
 
     async def _take_new_map(self, channel: TrackChannel, stream: _Stream) -> None:
         """Switch to the changed context, between two frames: the poses so far were in the
