@@ -3,11 +3,12 @@
 For each walk type and room, the walk is rendered, the detector runs on every frame as
 the survey job runs it (``Detector.for_survey``: blob candidates too, fitted disc centres) and the feature tracker follows the
 walls (the detected cards left out), as ``bench/bench_walks.py`` does. Then, instead of
-surveying, the survey's state is set to the truth (every frame at its true pose, every
-card at its true discs, the true lens), the feature points are triangulated from it, and
-the final bundle adjustment (``app.core.survey.reconstruction.adjust``, lens free) runs
-from there. Where it settles is the optimum of the observations themselves: no survey
-from these observations can be expected nearer the truth. Three variants tell which
+surveying, the survey's state is set to the truth (every frame that observes something at
+its true pose, every card at its true discs, the true lens), the feature points are
+triangulated from it, and the final bundle adjustment (``app.core.survey.reconstruction.adjust``,
+lens free) runs from there (``bench.walk_runs.survey_floor``, which the walks benchmark
+shares). Where it settles is the optimum of the observations themselves: no survey from
+these observations can be expected nearer the truth. Three variants tell which
 observations set the floor:
 
 * *detected discs, tracked features*: the observations a survey has;
@@ -31,19 +32,12 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import Detector, load_default_classifier, warm_up
-from app.core.geometry import similarity_from_points
-from app.core.survey import FeatureObservations
-from app.core.survey.features import triangulate_features
-from app.core.survey.reconstruction import adjust
-from app.core.survey.state import StageClock, SurveySettings, SurveyState
-from app.core.survey.tracks import collect_tracks
 from app.sim import WALKS, ExampleWalk
-from bench.walk_runs import detect_and_track_features
+from bench.walk_runs import detect_and_track_features, disc_rms_mm, survey_floor
 
 VARIANTS = ("detected discs, tracked features", "exact discs, tracked features", "detected discs, exact features")
 
@@ -59,35 +53,11 @@ def floor_mm(walk: ExampleWalk, seed: int, n_frames: int, detector: Detector) ->
     out: dict[str, float] = {}
     n_cards = 0
     for variant in VARIANTS:
-        tracks = collect_tracks(frames, np.arange(len(frames)), [])
-        features = FeatureObservations(tracked.frame, tracked.track, tracked.uv.copy(), tracked.sigma_px,
-                                       tracked.loss, tracked.loss_scale)
-        state = SurveyState.start(tracks, camera, SurveySettings(walk.room.marker_size_m), StageClock(), [],
-                                  features)
-        state.lens_refined = True
-        rec = state.reconstruction
-        for f, truth in enumerate(truths):
-            rec.set_pose(f, truth.pose)
-        for k, card in enumerate(tracks.ids):
-            rec.place(k, true_discs[int(card)])
-        if variant.startswith("exact discs"):
-            for f, truth in enumerate(truths):
-                rows = tracks.frame == f
-                tracks.uv[rows] = camera.project_map(rec.X[tracks.point[rows]], truth.pose)
-        triangulate_features(state)
-        if variant.endswith("exact features"):
-            Xf = state.feature_X[features.track]
-            for f, truth in enumerate(truths):
-                rows = (features.frame == f) & np.isfinite(Xf[:, 0])
-                features.uv[rows] = camera.project_map(Xf[rows], truth.pose)
-        adjust(state, True, 3.0)
-        seen = np.bincount(tracks.target[::4], minlength=len(tracks.ids)) >= 2
-        src = np.concatenate([rec_discs for k, rec_discs in enumerate(state.reconstruction.X.reshape(-1, 4, 3))
-                              if seen[k]])
-        dst = np.concatenate([true_discs[int(card)] for k, card in enumerate(tracks.ids) if seen[k]])
-        similar = similarity_from_points(src, dst)
-        out[variant] = 1000 * float(np.sqrt(np.mean(np.sum((similar.apply(src) - dst) ** 2, axis=1))))
-        n_cards = int(seen.sum())
+        discs = survey_floor(frames, truths, camera, walk.room.marker_size_m, true_discs, tracked,
+                             exact_discs=variant.startswith("exact discs"),
+                             exact_features=variant.endswith("exact features"))
+        out[variant] = disc_rms_mm(discs, true_discs)
+        n_cards = len(discs)
     return out, n_cards
 
 

@@ -1,24 +1,40 @@
-"""The card-only survey on walks that look like real filming, per walk type.
+"""The survey on walks that look like real filming, per walk type: is the map complete,
+is it right, and does it say so when it is not?
 
 Each walk type is one of the simulator's named example walks (`app.sim.examples.WALKS`):
 the bench's survey walk (two loops round the bench room), a hand-held loop near the
-middle of the bench room looking out at its walls, a hand-held pan on one spot (no
-baseline), and the same loop in a room of 10 cards spread round photo walls (one or two
-cards in most frames, or none) and round plain painted walls. For each, over several rooms
-(seeds), the walk is rendered, the detector runs on every frame as the survey job runs
-it (``Detector.for_survey``: blob candidates too, fitted disc centres), and the survey (``app.core.survey.survey``, cards
-only) maps the room. A tracking walk through the same room is then tracked with the
-surveyed map and with the true one (as ``bench/bench_survey.py`` does).
+middle of the bench room looking out at its walls (*centre_loop*), a hand-held pan on one
+spot (no baseline), the same loop in a room of 10 cards spread round photo walls (one or
+two cards in most frames, or none: *sparse*) and round plain painted walls (*plain*), in
+a furnished room, and in the bench room with one long wall bare (*bare_wall*: its cards
+taken off and the wall painted plain, so that for about a third of each turn the camera
+sees neither a card nor texture to track; the same room, less that wall, and the same
+walk as *centre_loop* for the same seed). For each, over several rooms (seeds), the walk
+is rendered, the detector runs on every frame as the survey job runs it
+(``Detector.for_survey``: blob candidates too, fitted disc centres), the feature tracker
+follows the walls through the same frames (the detected cards left out), and the survey
+(``app.core.survey.survey``) maps the room with the cards alone (*cards*) and with the
+feature tracks beside them (*features*). A tracking walk through the same room is then
+tracked with the surveyed map and with the true one (as ``bench/bench_survey.py`` does).
 
-Run: ``.venv/bin/python bench/bench_walks.py [--frames 300] [--rooms 8] [--walks bench pan ...]
-[--quick]`` (markdown tables; ``--quick``: 2 rooms, 150-frame walks, 40-frame tracking
-walks).
+Run: ``.venv/bin/python bench/bench_walks.py [--rooms 16] [--frames 300] [--walks bench pan ...]
+[--tracks cards|features|both] [--no-floor] [--quick]`` (markdown tables on stdout, one row
+per room last; ``--quick``: 2 rooms, 150-frame walks, 40-frame tracking walks).
 
 A card counts as seen in a frame when the truth has it whole in the image, facing the
 camera at cos > 0.3 and with discs over 4 px; it should be mapped when seen in at least
 10 frames whose viewing directions span at least 5 degrees. A pan's views all come from
 one point, so none of its cards qualifies: the pan's row also counts the cards seen in 10
 frames from any direction.
+
+A mapped card is *wrong* when one of its discs lies more than 5 cm from the truth, or
+more than 3 of its reported ``std_m``, after a similarity fit of the map to the truth
+that the wrong cards do not pull (``walk_runs.check_map``); it is *named* when one of the
+survey's typed map warnings lists it. A survey that raises ``SurveyError`` is *refused*:
+no map, and no wrong card. The *floor* is where the survey's final bundle adjustment
+settles from the truth with the same observations (``walk_runs.survey_floor``, as
+``bench/bench_survey_floor.py``'s detected-discs variant; with the cards alone for the
+card-only survey).
 """
 
 from __future__ import annotations
@@ -32,18 +48,43 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.detection import Detector, load_default_classifier, warm_up  # noqa: E402
-from app.core.survey import FeatureObservations, SurveyError, survey  # noqa: E402
-from app.sim import WALKS, ExampleWalk, FrameTruth, Scene, camera_walk, frame_truth, render_walk, walk_speeds  # noqa: E402
-from bench.walk_runs import detect_and_track_features, detect_frames, map_fit, track_errors  # noqa: E402
+from app.core.detection import Detector, load_default_classifier, warm_up
+from app.core.survey import FeatureObservations, SurveyError, SurveyResult, survey
+from app.sim import (
+    WALKS,
+    ExampleWalk,
+    FrameTruth,
+    Scene,
+    camera_walk,
+    frame_truth,
+    render_walk,
+    walk_speeds,
+)
+from app.sim.examples import BareWallRoom
+from bench.walk_runs import (
+    WRONG_M,
+    check_map,
+    detect_and_track_features,
+    detect_frames,
+    disc_rms_mm,
+    survey_floor,
+    track_errors,
+)
 
 #: A card counts as mapped-worthy when seen in this many frames over this many degrees.
 MIN_FRAMES, MIN_SPAN_DEG = 10, 5.0
+#: A focal length off by more than this (percent) needs a lens warning.
+FOCAL_TOLERANCE_PCT = 0.5
+#: What |error| / std_m of an honest std_m looks like: the 95th percentile of the square
+#: root of chi-square(3) / 3.
+HONEST_95 = 1.61
 
-#: Short names of the survey's warnings, by a phrase of their text (first match).
+#: Short names of the survey's warnings that are not typed map warnings, by a phrase of
+#: their text (first match); the typed ones go by their kind.
 WARNING_KINDS = (
     ("could not be surveyed", "not surveyed"),
     ("parts of the map are not seen together", "disconnected parts"),
@@ -51,8 +92,11 @@ WARNING_KINDS = (
     ("too narrow", "narrow"),
     ("only turned on one spot", "pure pan"),
     ("focal length", "lens"),
+    ("principal point", "lens"),
     ("were ignored", "detections ignored"),
 )
+#: A warning about the lens (its focal length, principal point or calibration) mentions one of these.
+LENS_PHRASES = ("focal", "lens")
 
 
 def seen(truth: FrameTruth) -> set[int]:
@@ -80,6 +124,22 @@ def cards_to_map(scene: Scene, truths: list[FrameTruth], min_span_deg: float) ->
             if len(positions) >= MIN_FRAMES and widest_angle_deg(np.array(positions), centres[card]) >= min_span_deg}
 
 
+def lens_warned(result: SurveyResult) -> bool:
+    """Whether the survey warned about the lens: a warning whose text or kind mentions its
+    focal length or the lens."""
+    texts = [*result.warnings, *(str(getattr(w.kind, "value", w.kind)) for w in result.map_warnings)]
+    return any(phrase in text.lower() for text in texts for phrase in LENS_PHRASES)
+
+
+def warning_kinds(result: SurveyResult) -> list[str]:
+    """The kind of each of the survey's warnings: the typed map warnings' own, the others'
+    by `WARNING_KINDS`."""
+    typed = {w.message for w in result.map_warnings}
+    kinds = [str(getattr(w.kind, "value", w.kind)) for w in result.map_warnings]
+    kinds += [next((name for phrase, name in WARNING_KINDS if phrase in text), "other")
+              for text in result.warnings if text not in typed]
+    return kinds
+
 
 @dataclass
 class RoomRun:
@@ -88,26 +148,50 @@ class RoomRun:
     seed: int
     tracks: str  # "cards": the card-only survey; "features": with feature tracks beside the cards
     n_frames: int
-    n_with_card: int  # frames in which the detector found a card
+    n_with_card: int  # frames in which the detector found a card of the room
     recall: float  # cards found / cards seen, over every frame
     to_map: set[int]  # cards seen in MIN_FRAMES frames over MIN_SPAN_DEG
     seen_often: set[int]  # cards seen in MIN_FRAMES frames, any directions
+    before_s: float = 0.0  # detection (and with feature tracks, feature tracking)
+    survey_s: float = 0.0
+    refusal: str | None = None  # the SurveyError's message
+    crash: str | None = None  # any other exception the survey raised
     mapped: set[int] = field(default_factory=set)
     n_registered: int = 0
+    card_frames_lost: int = 0  # frames with a card of the room detected that did not register
     focal_pct: float = float("nan")
-    disc_rms_mm: float = float("nan")
-    wall_s: float = 0.0
+    lens_warned: bool = False
+    wrong: set[int] = field(default_factory=set)
+    wrong_named: set[int] = field(default_factory=set)
+    wrong_far: set[int] = field(default_factory=set)  # wrong cards with a disc over WRONG_M off
+    disc_rms_mm: float = float("nan")  # every mapped card of the room, after the robust fit
+    floor_mm: float = float("nan")  # the floor of the same cards
+    floor_failure: str | None = None
     warnings: list[str] = field(default_factory=list)
-    failure: str | None = None
+    kinds: list[str] = field(default_factory=list)
+    error_over_std: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per disc, after a rigid fit
     e_true: np.ndarray = field(default_factory=lambda: np.zeros(0))  # tracking errors, m
     e_surv: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_located_full: int = 0  # tracking frames located with the whole true map
-    error_over_std: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per disc, after a rigid fit
 
+    @property
+    def ok(self) -> bool:
+        """Whether the survey made a map."""
+        return self.refusal is None and self.crash is None
+
+    @property
+    def floor_ratio(self) -> float:
+        """Disc RMS over the floor's."""
+        return self.disc_rms_mm / self.floor_mm if self.floor_mm > 0 else float("nan")
+
+    @property
+    def focal_unwarned(self) -> bool:
+        """A focal length off by more than `FOCAL_TOLERANCE_PCT` with no lens warning."""
+        return self.ok and abs(self.focal_pct) > FOCAL_TOLERANCE_PCT and not self.lens_warned
 
 
 def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detector,
-             tracking: tuple[list, list, Scene], kinds: list[str]) -> list[RoomRun]:  # type: ignore[type-arg]
+             tracking: tuple[list, list, Scene], kinds: list[str], floor: bool) -> list[RoomRun]:  # type: ignore[type-arg]
     """Render, detect and feature-track one walk, survey it with each kind of track
     (``kinds``: cards, features); track the room's tracking walk with each map."""
     room = walk.walk(seed, n_frames)
@@ -123,83 +207,144 @@ def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detec
     found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
     return [_survey_run(walk, room.scene, seed, kind, frames, truths, should, found,
                         detect_s + (track_s if kind == "features" else 0.0),
-                        features if kind == "features" else None, tracking) for kind in kinds]
+                        features if kind == "features" else None, tracking, floor) for kind in kinds]
 
 
 def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: list, truths: list[FrameTruth],  # type: ignore[type-arg]
                 should: list[set[int]], found: int, before_s: float, features: FeatureObservations | None,
-                tracking: tuple[list, list, Scene]) -> RoomRun:  # type: ignore[type-arg]
+                tracking: tuple[list, list, Scene], floor: bool) -> RoomRun:  # type: ignore[type-arg]
     """Survey one detected walk with one kind of track and measure the map."""
     camera = walk.room.camera
-    run = RoomRun(seed, kind, len(frames), sum(bool(f) for f in frames),
-                  found / max(sum(len(s) for s in should), 1),
-                  cards_to_map(scene, truths, MIN_SPAN_DEG), cards_to_map(scene, truths, 0.0))
+    truth = {t.id: t.discs for t in scene.targets}
+    with_card = [any(t.id in truth for t in f) for f in frames]
+    run = RoomRun(seed, kind, len(frames), sum(with_card), found / max(sum(len(s) for s in should), 1),
+                  cards_to_map(scene, truths, MIN_SPAN_DEG), cards_to_map(scene, truths, 0.0), before_s=before_s)
     start = time.perf_counter()
     try:
         result = survey(frames, camera.width, camera.height, walk.room.marker_size_m, features=features)
     except SurveyError as e:
-        run.failure, run.wall_s = str(e), before_s + time.perf_counter() - start
+        run.refusal, run.survey_s = str(e), time.perf_counter() - start
         return run
-    run.wall_s = before_s + time.perf_counter() - start
-    run.mapped, run.n_registered, run.warnings = {t.id for t in result.targets}, result.n_registered, result.warnings
+    except Exception as e:  # noqa: BLE001 - a survey that breaks is measured, not the end of the run
+        run.crash, run.survey_s = f"{type(e).__name__}: {e}", time.perf_counter() - start
+        return run
+    run.survey_s = time.perf_counter() - start
+    run.mapped, run.warnings = {t.id for t in result.targets}, result.warnings
+    run.n_registered, run.kinds = result.n_registered, warning_kinds(result)
+    run.card_frames_lost = sum(c and p is None for c, p in zip(with_card, result.trajectory, strict=True))
     run.focal_pct = 100 * (result.camera.fx / camera.fx - 1)
-    truth = {t.id: t.discs for t in scene.targets}
-    similar, errors = map_fit(result, truth)
-    run.disc_rms_mm = 1000 * float(np.sqrt(np.mean(errors**2)))
+    run.lens_warned = lens_warned(result)
+    check = check_map(result, truth)
+    run.wrong, run.wrong_named = check.wrong, check.wrong_named
+    order = [t.id for t in result.targets]
+    worst = {i: float(np.nanmax(e)) if np.isfinite(e).any() else np.inf
+             for i, e in zip(order, check.errors_m.reshape(-1, 4), strict=True)}
+    run.wrong_far = {i for i in check.wrong if worst[i] > WRONG_M}
+    finite = np.isfinite(check.errors_m)
+    run.disc_rms_mm = 1000 * float(np.sqrt(np.mean(check.errors_m[finite] ** 2))) if finite.any() else float("nan")
     # The reported uncertainties against the errors: std_m is relative to one rigid
     # motion of the whole metric map, so the map is taken to the truth by a rigid fit.
-    run.error_over_std = map_fit(result, truth, with_scale=False)[1] / np.concatenate([t.std_m for t in result.targets])
+    run.error_over_std = check.rigid_errors_m / check.std_m
+    if floor:
+        try:
+            optimum = survey_floor(frames, truths, camera, walk.room.marker_size_m, truth, features)
+            run.floor_mm = disc_rms_mm(optimum, truth, [i for i in order if i in truth])
+        except Exception as e:  # noqa: BLE001 - the floor rests on the survey's internals, which may move
+            run.floor_failure = f"{type(e).__name__}: {e}"
     # Tracking: the surveyed map with the surveyed camera against the true map of the same
     # cards with the true camera, on the frames both locate; and how many frames the whole
     # true map locates.
     t_frames, t_truths, _ = tracking
-    surveyed = {t.id: t.discs for t in result.targets}
+    surveyed = {t.id: t.discs for t in result.targets if t.id in truth}
     e_true = track_errors(t_frames, t_truths, {i: truth[i] for i in surveyed}, camera)
-    e_surv = track_errors(t_frames, t_truths, surveyed, result.camera, similar)
+    e_surv = track_errors(t_frames, t_truths, surveyed, result.camera, check.fit)
     both = np.isfinite(e_true) & np.isfinite(e_surv)
     run.e_true, run.e_surv = e_true[both], e_surv[both]
     run.n_located_full = int(np.isfinite(track_errors(t_frames, t_truths, truth, camera)).sum())
     return run
 
 
-def warning_counts(runs: list[RoomRun]) -> str:
+def _kind_counts(runs: list[RoomRun]) -> str:
     """How many warnings of each kind the survey gave, over the rooms."""
-    counts: Counter[str] = Counter()
-    for run in runs:
-        for text in run.warnings:
-            counts[next((name for phrase, name in WARNING_KINDS if phrase in text), "other")] += 1
+    counts: Counter[str] = Counter(k for run in runs for k in run.kinds)
     return ", ".join(f"{name} {n}" for name, n in counts.most_common()) or "none"
 
 
+def _median_worst(values: list[float], digits: int = 2) -> str:
+    finite = [v for v in values if np.isfinite(v)]
+    return f"{np.median(finite):.{digits}f} / {max(finite):.{digits}f}" if finite else "-"
+
+
+def _ratio(runs: list[RoomRun]) -> np.ndarray:
+    ratio = np.concatenate([r.error_over_std for r in runs if r.ok] or [np.zeros(0)])
+    return ratio[np.isfinite(ratio)]
+
+
 def walk_row(walk: ExampleWalk, runs: list[RoomRun]) -> str:
-    """The summary row of one walk type over its rooms."""
-    ok = [r for r in runs if r.failure is None]
+    """The summary row of one walk type and track kind over its rooms: is the map complete,
+    is it right, does it say so."""
+    ok = [r for r in runs if r.ok]
     frames = sum(r.n_frames for r in runs)
     registered = sum(r.n_registered for r in runs)
+    with_card = sum(r.n_with_card for r in ok)
     to_map = sum(len(r.to_map) for r in runs)
     mapped = sum(len(r.mapped & r.to_map) for r in runs)
     often = sum(len(r.seen_often) for r in runs)
     mapped_often = sum(len(r.mapped & r.seen_often) for r in runs)
-    e_true = np.concatenate([r.e_true for r in ok]) if ok else np.zeros(0)
-    e_surv = np.concatenate([r.e_surv for r in ok]) if ok else np.zeros(0)
-    located = sum(len(r.e_surv) for r in ok)
-    located_full = sum(r.n_located_full for r in runs)
+    named = sum(len(r.wrong_named) for r in ok)
+    silent = sum(len(r.wrong - r.wrong_named) for r in ok)
+    far = sum(len(r.wrong_far) for r in ok)
     focal = f"{max(abs(r.focal_pct) for r in ok):.3f} %" if ok else "-"
-    rms = (f"{np.median([r.disc_rms_mm for r in ok]):.2f} / {max(r.disc_rms_mm for r in ok):.2f}" if ok else "-")
+    ratio = _ratio(runs)
+    refused = f"{sum(r.refusal is not None for r in runs)}" + (
+        f" (+{sum(r.crash is not None for r in runs)} crashed)" if any(r.crash for r in runs) else "")
+    return (f"| {walk.name} | {runs[0].tracks} | {registered} / {frames} ({100 * registered / frames:.0f} %) "
+            f"| {sum(r.card_frames_lost for r in ok)} / {with_card} "
+            f"| {mapped} / {to_map} ({100 * mapped / max(to_map, 1):.0f} %) | {mapped_often} / {often} "
+            f"| {named} / {silent} ({far} over {100 * WRONG_M:g} cm) "
+            f"| {focal} | {sum(r.focal_unwarned for r in runs)} "
+            f"| {_median_worst([r.disc_rms_mm for r in ok])} | {_median_worst([r.floor_ratio for r in ok])} "
+            f"| {np.median(ratio) if len(ratio) else float('nan'):.2f} "
+            f"| {_median_worst([r.survey_s for r in runs], 1)} | {np.mean([r.before_s for r in runs]):.1f} "
+            f"| {refused} | {np.mean([len(r.kinds) for r in ok]) if ok else 0:.1f}: {_kind_counts(ok)} |")
+
+
+def detection_row(walk: ExampleWalk, runs: list[RoomRun]) -> str:
+    """The detection and tracking row of one walk type and track kind."""
+    ok = [r for r in runs if r.ok]
+    e_true = np.concatenate([r.e_true for r in ok] or [np.zeros(0)])
+    e_surv = np.concatenate([r.e_surv for r in ok] or [np.zeros(0)])
+    located = sum(len(r.e_surv) for r in ok)
+    located_full = sum(r.n_located_full for r in ok)
     tracking = (f"{1000 * np.median(e_true):.2f} / {1000 * np.median(e_surv):.2f} ({located} / {located_full})"
                 if len(e_true) else "-")
-    return (f"| {walk.name} | {runs[0].tracks} | {registered} / {frames} ({100 * registered / frames:.0f} %) "
-            f"| {sum(r.n_with_card for r in runs)} | {100 * np.mean([r.recall for r in runs]):.1f} % "
-            f"| {mapped} / {to_map} | {mapped_often} / {often} | {focal} | {rms} | {tracking} "
-            f"| {np.mean([r.wall_s for r in runs]):.1f} | {len(runs) - len(ok)} "
-            f"| {np.mean([len(r.warnings) for r in ok]) if ok else 0:.1f}: {warning_counts(ok)} |")
+    return (f"| {walk.name} | {runs[0].tracks} | {sum(r.n_with_card for r in runs)} / {sum(r.n_frames for r in runs)} "
+            f"| {100 * np.mean([r.recall for r in runs]):.1f} % | {tracking} |")
+
+
+def room_row(walk: ExampleWalk, r: RoomRun) -> str:
+    """One room's row."""
+    head = f"| {walk.name} | {r.tracks} | {r.seed} "
+    if not r.ok:
+        what = f"refused: {r.refusal}" if r.refusal is not None else f"crashed: {r.crash}"
+        return head + f"| {what} | | | | | | | | | {r.survey_s:.1f} |"
+    ratio = r.error_over_std[np.isfinite(r.error_over_std)]
+    wrong = f"{len(r.wrong_named)} / {len(r.wrong - r.wrong_named)}"
+    if r.wrong:
+        wrong += " (" + ", ".join(f"{i}{'' if i in r.wrong_named else '!'}" for i in sorted(r.wrong)) + ")"
+    return (head + f"| {r.n_registered} / {r.n_frames} | {r.card_frames_lost} "
+            f"| {len(r.mapped & r.to_map)} / {len(r.to_map)} | {wrong} | {r.focal_pct:+.3f} % "
+            f"| {'yes' if r.lens_warned else 'no'} | {r.disc_rms_mm:.2f} | {r.floor_mm:.2f} "
+            f"| {r.floor_ratio:.2f} | {np.median(ratio) if len(ratio) else float('nan'):.2f} "
+            f"| {r.survey_s:.1f} |")
 
 
 def describe(walk: ExampleWalk, seeds: list[int], n_frames: int) -> str:
     """A row on how the walk moves and what its frames see, from the truth alone."""
-    speed, turn, counts, blur = [], [], [], []
+    speed, turn, counts, blur, cards = [], [], [], [], []
     for seed in seeds:
         room = walk.walk(seed, n_frames)
+        cards.append(len(room.scene.targets))
         s, t = walk_speeds(room.poses)
         speed.append(s)
         turn.append(t)
@@ -208,25 +353,78 @@ def describe(walk: ExampleWalk, seeds: list[int], n_frames: int) -> str:
     share = np.bincount(np.minimum(counts, 3), minlength=4) / len(counts)
     s, t = np.concatenate(speed), np.concatenate(turn)
     room = walk.room
-    return (f"| {walk.name} | {room.name}: {room.n_targets} cards, {room.cards}, {room.walls} walls "
+    n_cards = f"{min(cards)}" if min(cards) == max(cards) else f"{min(cards)}-{max(cards)}"
+    walls = f"{room.walls} walls" + (", one bare" if isinstance(room, BareWallRoom) else "")
+    return (f"| {walk.name} | {room.name}: {n_cards} cards, {room.cards}, {walls} "
             f"| {walk.kind}{', hand-held' if walk.shake else ''} | {np.median(s):.2f} / {s.max():.2f} "
             f"| {np.median(t):.0f} / {t.max():.0f} | " + " / ".join(f"{100 * x:.0f}" for x in share)
             + f" | {f'{np.median(blur):.1f} / {max(blur):.1f}' if blur else 'preset (0-2 px, half the frames)'} |")
 
 
+def print_tables(walks: list[ExampleWalk], kinds: list[str], runs: dict[tuple[str, str], list[RoomRun]]) -> None:
+    """The summary tables, then a row per room (markdown)."""
+    print("\n| walk | tracks | frames registered | frames with a card detected, not registered "
+          f"| cards mapped / seen in {MIN_FRAMES}+ frames over {MIN_SPAN_DEG:g}+ deg "
+          f"| mapped / seen in {MIN_FRAMES}+ frames | cards wrong: named / not named by a warning "
+          f"| focal error, worst | focal error over {FOCAL_TOLERANCE_PCT:g} % without a lens warning (rooms) "
+          "| disc RMS, median / worst (mm) | disc RMS / floor, median / worst | \\|error\\| / std_m, median "
+          "| survey per room, median / worst (s) | detection + feature tracking per room (s) | refused "
+          "| warnings per room: kinds over all rooms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for walk in walks:
+        for kind in kinds:
+            print(walk_row(walk, runs[walk.name, kind]))
+    for walk in walks:
+        for kind in kinds:
+            for r in runs[walk.name, kind]:
+                if r.refusal is not None:
+                    print(f"\n{walk.name} ({kind}), room {r.seed} refused: {r.refusal}")
+                if r.crash is not None:
+                    print(f"\n{walk.name} ({kind}), room {r.seed}: the survey crashed: {r.crash}")
+                if r.floor_failure is not None:
+                    print(f"\n{walk.name} ({kind}), room {r.seed}: no floor: {r.floor_failure}")
+    print("\nDetection, and tracking a walk through the same room with the map:\n")
+    print("| walk | tracks | frames with a card detected | cards found per card seen "
+          "| tracking median, true / surveyed map (mm) (frames located: surveyed / whole true map) |")
+    print("|---|---|---|---|---|")
+    for walk in walks:
+        for kind in kinds:
+            print(detection_row(walk, runs[walk.name, kind]))
+    print("\nThe discs' reported uncertainty against their error after a rigid fit to the truth: "
+          "|error| / std_m is the square root of chi-square(3) / 3 if std_m is honest (median 0.89, "
+          f"95 % under {HONEST_95}).\n")
+    print(f"| walk | tracks | discs | \\|error\\| / std_m, median | share under {HONEST_95} |")
+    print("|---|---|---|---|---|")
+    for walk in walks:
+        for kind in kinds:
+            ratio = _ratio(runs[walk.name, kind])
+            print(f"| {walk.name} | {kind} | {len(ratio)} | {np.median(ratio) if len(ratio) else float('nan'):.2f} "
+                  f"| {np.mean(ratio < HONEST_95) if len(ratio) else float('nan'):.0%} |")
+    print("\nOne row per room (wrong cards by id, ! where no warning names them):\n")
+    print("| walk | tracks | room | registered | frames with a card, not registered | cards mapped / to map "
+          "| cards wrong: named / not named | focal error | lens warning | disc RMS (mm) | floor (mm) "
+          "| disc RMS / floor | \\|error\\| / std_m, median | survey (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for walk in walks:
+        for kind in kinds:
+            for r in runs[walk.name, kind]:
+                print(room_row(walk, r))
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=300, help="frames of each surveyed walk (30 a second)")
     parser.add_argument("--tracking-frames", type=int, default=100, help="frames of each room's tracking walk")
-    parser.add_argument("--rooms", type=int, default=8, help="rooms (seeds 0 .. rooms - 1) per walk type")
+    parser.add_argument("--rooms", type=int, default=16, help="rooms (seeds 0 .. rooms - 1) per walk type")
     parser.add_argument("--walks", nargs="+", choices=list(WALKS), default=list(WALKS), help="walk types")
-    parser.add_argument("--tracks", nargs="+", choices=["cards", "features"], default=["cards", "features"],
+    parser.add_argument("--tracks", choices=["cards", "features", "both"], default="both",
                         help="survey with card tracks only, with feature tracks beside them, or both side by side")
+    parser.add_argument("--no-floor", action="store_true", help="skip the floor (the survey's optimum) of each room")
     parser.add_argument("--quick", action="store_true", help="2 rooms, 150-frame walks, 40-frame tracking walks")
-    parser.add_argument("--details", action="store_true", help="a row per room as well")
     args = parser.parse_args()
     if args.quick:
         args.rooms, args.frames, args.tracking_frames = 2, 150, 40
+    kinds = ["cards", "features"] if args.tracks == "both" else [args.tracks]
     cv2.setNumThreads(1)
     detector = Detector(classifier=load_default_classifier())
     warm_up()  # the detector's compiled kernels: not part of the first frame's time
@@ -246,10 +444,12 @@ def main() -> None:
                 rng = np.random.default_rng([seed, 1])
                 poses = camera_walk(rng, walk.room.size, args.tracking_frames, "tracking")
                 t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, walk.room.camera, poses, rng),
-                                                    len(poses), f"{walk.room.name} room {seed}: tracking walk")
+                                                      len(poses), f"{walk.room.name} room {seed}: tracking walk")
                 tracking[key] = (t_frames, t_truths, scene)
-            for run in run_walk(walk, seed, args.frames, survey_detector, tracking[key], args.tracks):
+            for run in run_walk(walk, seed, args.frames, survey_detector, tracking[key], kinds, not args.no_floor):
                 runs.setdefault((walk.name, run.tracks), []).append(run)
+                # Each room's row as it comes, beside the progress bars: a long run tells early.
+                tqdm.write(room_row(walk, run), file=sys.stderr)
 
     print(f"\nWalks: {args.frames} frames at 30 a second, rooms (seeds) {seeds[0]}-{seeds[-1]}, 640x480, "
           f"f 820 px, k1 -0.12, cards of 0.2 m; tracking walks of {args.tracking_frames} frames; "
@@ -259,40 +459,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     for walk in walks:
         print(describe(walk, seeds, args.frames))
-    print("\n| walk | tracks | frames registered | frames with a card detected | cards found per card seen "
-          f"| cards mapped / seen in {MIN_FRAMES}+ frames over {MIN_SPAN_DEG:g}+ deg "
-          f"| mapped / seen in {MIN_FRAMES}+ frames | focal error, worst | disc RMS, median / worst (mm) "
-          "| tracking median, true / surveyed map (mm) (frames located: surveyed / whole true map) "
-          "| detection + survey per room (s) | surveys failed | warnings per room: kinds over all rooms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for walk in walks:
-        for kind in args.tracks:
-            print(walk_row(walk, runs[walk.name, kind]))
-    for walk in walks:
-        for kind in args.tracks:
-            for r in runs[walk.name, kind]:
-                if r.failure:
-                    print(f"\n{walk.name} ({kind}), survey failed in room {r.seed}: {r.failure}")
-    print("\nThe discs' reported uncertainty against their error after a rigid fit to the truth: "
-          "|error| / std_m is the square root of chi-square(3) / 3 if std_m is honest (median 0.89, "
-          "95 % under 1.61).\n")
-    print("| walk | tracks | discs | \\|error\\| / std_m, median | share under 1.61 |")
-    print("|---|---|---|---|---|")
-    for walk in walks:
-        for kind in args.tracks:
-            ratio = np.concatenate([r.error_over_std for r in runs[walk.name, kind] if r.failure is None] or [[]])
-            ratio = ratio[np.isfinite(ratio)]
-            print(f"| {walk.name} | {kind} | {len(ratio)} | {np.median(ratio) if len(ratio) else float('nan'):.2f} "
-                  f"| {np.mean(ratio < 1.61) if len(ratio) else float('nan'):.0%} |")
-    if args.details:
-        print("\n| walk | tracks | room | registered | cards mapped / to map | focal error | disc RMS (mm) | s |")
-        print("|---|---|---|---|---|---|---|---|")
-        for walk in walks:
-            for kind in args.tracks:
-                for r in runs[walk.name, kind]:
-                    print(f"| {walk.name} | {kind} | {r.seed} | {r.n_registered} / {r.n_frames} "
-                          f"| {len(r.mapped & r.to_map)} / {len(r.to_map)} | {r.focal_pct:+.3f} % "
-                          f"| {r.disc_rms_mm:.2f} | {r.wall_s:.1f} |")
+    print_tables(walks, kinds, runs)
 
 
 if __name__ == "__main__":

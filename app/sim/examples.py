@@ -11,18 +11,30 @@ a kind of walk and whether it is hand-held (shake, motion blur of the exposure).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from app.core.geometry import Camera, Pose
 from app.sim.degrade import ThinLens
 from app.sim.lighting import Lighting, ceiling_lamps
-from app.sim.scenes import CardPlacement, FrameTruth, Scene, WallFinish, render_walk, room_scene
+from app.sim.render import TexturedQuad
+from app.sim.scenes import (
+    CardPlacement,
+    FrameTruth,
+    Scene,
+    WallFinish,
+    plain_paint,
+    render_walk,
+    room_scene,
+    room_walls,
+)
 from app.sim.video import PhoneVideo
 from app.sim.walks import ExposureBlur, Shake, WalkKind, draw_walk
 
 __all__ = [
+    "BARE_WALL_ROOM",
+    "BARE_WALL_WALK",
     "BENCH_CAMERA",
     "BENCH_ROOM",
     "BENCH_WALK",
@@ -44,6 +56,7 @@ __all__ = [
     "SPARSE_ROOM",
     "SPARSE_WALK",
     "WALKS",
+    "BareWallRoom",
     "ExampleRoom",
     "ExampleWalk",
     "RoomWalk",
@@ -210,6 +223,52 @@ class ExampleRoom:
         return RoomWalk(scene, walk.poses, rng, blur)
 
 
+@dataclass(frozen=True)
+class BareWallRoom(ExampleRoom):
+    """An example room with one side wall left bare: its cards taken off and the wall
+    painted plain, so that a camera facing it sees neither a card nor texture.
+
+    The room, the cards on the other walls and the walk are drawn as `ExampleRoom`'s
+    from the same seed: the same seed gives the same room with one wall stripped.
+
+    Attributes
+    ----------
+    bare_wall : int
+        The bare wall's index among the side walls of `room_walls` (0: the wall at y = 0).
+    """
+
+    bare_wall: int = 0
+
+    def walk(self, seed: int, n_frames: int, kind: WalkKind = "calibration", shake: Shake | None = None,
+             exposure_s: float | None = None) -> RoomWalk:
+        """`ExampleRoom.walk`, with the bare wall stripped of its cards and its photographs.
+
+        Parameters
+        ----------
+        seed, n_frames, kind, shake, exposure_s
+            As `ExampleRoom.walk`.
+
+        Returns
+        -------
+        RoomWalk
+        """
+        drawn = super().walk(seed, n_frames, kind, shake, exposure_s)
+        wall = room_walls(self.size)[self.bare_wall]
+        background = list(drawn.scene.background)
+        background[self.bare_wall] = TexturedQuad(background[self.bare_wall].corners,
+                                                  plain_paint(BARE_WALL_GREY, side_wall=True))
+        # Cards hang 2 mm off their wall (more where bent): those within 5 cm of it are its.
+        targets = [t for t in drawn.scene.targets
+                   if abs(float((t.point(np.array([[0.5, 0.5]]))[0] - wall.centre) @ wall.inward)) > 0.05]
+        scene = Scene(background=background, targets=targets, room_size=drawn.scene.room_size,
+                      furniture=drawn.scene.furniture)
+        return replace(drawn, scene=scene)
+
+
+#: The bare wall's paint (a fraction of white).
+BARE_WALL_GREY = 0.78
+
+
 #: The benchmarks' room: 8 x 6 x 3 m, 30 cards of 0.2 m (bench_survey, bench_track,
 #: bench_disc_fit and the tests that measure against them).
 BENCH_ROOM = ExampleRoom("bench", (8.0, 6.0, 3.0), 30, 0.2, BENCH_CAMERA)
@@ -233,9 +292,13 @@ PLAIN_ROOM = ExampleRoom("plain", (8.0, 6.0, 3.0), 10, 0.2, BENCH_CAMERA, cards=
 #: flat): cards seen from above, at angles the wall cards are not.
 FURNISHED_ROOM = ExampleRoom("furnished", (8.0, 6.0, 3.0), 24, 0.2, BENCH_CAMERA, furniture=6)
 
+#: The bench room with its long wall at y = 0 bare (`BareWallRoom`): the same room as
+#: `BENCH_ROOM` for the same seed, less that wall's cards (about 9 of the 30) and photographs.
+BARE_WALL_ROOM = BareWallRoom("bare_wall", (8.0, 6.0, 3.0), 30, 0.2, BENCH_CAMERA, bare_wall=0)
+
 #: The example rooms by name.
 EXAMPLES: dict[str, ExampleRoom] = {room.name: room for room in (BENCH_ROOM, SMALL_ROOM, SPARSE_ROOM, PLAIN_ROOM,
-                                                                  FURNISHED_ROOM)}
+                                                                  FURNISHED_ROOM, BARE_WALL_ROOM)}
 
 #: The example rooms' lamps (`ExampleRoom.lamps`): a grid of rows x columns lamps 10 cm
 #: under the ceiling, and the bounce light, as a fraction of a lamp's light 1 m away. In
@@ -321,9 +384,15 @@ PLAIN_WALK = ExampleWalk("plain", PLAIN_ROOM, "centre_loop", HAND_HELD, EXPOSURE
 #: The centre loop in the furnished room: the cards on its boards seen from above.
 FURNISHED_WALK = ExampleWalk("furnished", FURNISHED_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
 
+#: The centre loop in the bench room with one long wall bare: the same walk as
+#: `CENTRE_LOOP_WALK` for the same seed; for about a third of each turn the camera faces
+#: the bare wall, with no card and nothing for feature tracks to hold on to.
+BARE_WALL_WALK = ExampleWalk("bare_wall", BARE_WALL_ROOM, "centre_loop", HAND_HELD, EXPOSURE_S)
+
 #: The example walks by name.
 WALKS: dict[str, ExampleWalk] = {
-    walk.name: walk for walk in (BENCH_WALK, CENTRE_LOOP_WALK, PAN_WALK, SPARSE_WALK, PLAIN_WALK, FURNISHED_WALK)
+    walk.name: walk for walk in (BENCH_WALK, CENTRE_LOOP_WALK, PAN_WALK, SPARSE_WALK, PLAIN_WALK, FURNISHED_WALK,
+                                 BARE_WALL_WALK)
 }
 
 

@@ -234,7 +234,7 @@ def test_unknown_options_are_refused() -> None:
 
 
 def test_every_example_walk_is_named_and_drawn_from_its_seed() -> None:
-    assert set(WALKS) == {"bench", "centre_loop", "pan", "sparse", "plain", "furnished"}
+    assert set(WALKS) == {"bench", "centre_loop", "pan", "sparse", "plain", "furnished", "bare_wall"}
     for name, walk in WALKS.items():
         assert walk.name == name
         a, b = walk.walk(1, 20), walk.walk(1, 20)
