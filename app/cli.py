@@ -587,7 +587,9 @@ def build_parser() -> argparse.ArgumentParser:
     survey.add_argument("--environment", "-e", type=int, required=True, help="the environment's id")
     survey.add_argument("--max-frames", type=int, help="frames to use, evenly spaced (default: the service's)")
     survey.add_argument("--marker-size", type=float, help="printed card side in metres (default: the environment's)")
-    survey.add_argument("--feature-tracks", action="store_true", help="also track the walls' own texture")
+    survey.add_argument("--feature-tracks", action=argparse.BooleanOptionalAction, default=True,
+                        help="track the walls' own texture beside the cards (default); --no-feature-tracks: "
+                             "the cards alone")
     on_service(survey)
     survey.set_defaults(run=_survey)
 

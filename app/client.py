@@ -327,8 +327,9 @@ class Client:
             time.sleep(poll_s)
 
     def start_survey(self, environment_id: int, video: str | Path | BinaryIO, *, max_frames: int | None = None,
-                     marker_size_m: float | None = None, feature_tracks: bool = False) -> JobOut:
-        """Upload a video of the room and start its survey (a job)."""
+                     marker_size_m: float | None = None, feature_tracks: bool = True) -> JobOut:
+        """Upload a video of the room and start its survey (a job); ``feature_tracks=False``:
+        the cards alone, without the walls' own texture."""
         form: dict[str, str] = {"feature_tracks": "true" if feature_tracks else "false"}
         if max_frames is not None:
             form["max_frames"] = str(max_frames)

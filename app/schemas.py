@@ -431,6 +431,9 @@ class CardWarningKind(StrEnum):
     NOT_SURVEYED = "not surveyed"  # detected but not in the map
     DISCONNECTED = "disconnected"  # in the map, but never seen together with the rest
     PURE_PAN = "pure pan"  # the camera only turned: no baseline anywhere
+    MISREAD = "probable misread"  # an id read a few times, weakly or on another card: left out of the map
+    PLAIN_WALLS = "plain walls"  # too little texture to track: the map rests on the cards alone
+    UNCERTAIN = "uncertain"  # in the map, placed too uncertainly to trust (reached through card-less frames)
 
 
 class CardWarning(BaseModel):
@@ -439,9 +442,15 @@ class CardWarning(BaseModel):
     kind: CardWarningKind = Field(description=(
         "few views: seen in too few registered frames; narrow: seen over too narrow a range of directions; "
         "not surveyed: detected but not in the map; disconnected: never seen together with the rest of the map; "
-        "pure pan: the camera only turned on one spot."))
+        "pure pan: the camera only turned on one spot; probable misread: an id read in a few frames only, "
+        "each read weak or on another card's place, taken for a misread of another card's code and left out "
+        "of the map (nothing to film again); plain walls: the walls had too little texture for feature tracks, "
+        "so the map rests on the cards alone (names no card); uncertain: in the map but placed more uncertainly "
+        "than 1 cm (1 sigma), reached only through frames with no other card in view."))
     target_ids: list[int] = Field(description="The ids of the cards it is about.")
     message: str = Field(description="The warning for a person (also one of the result's warnings).")
+    frames: list[int] = Field(default_factory=list, description=(
+        "The frames it is about, as numbered in the trajectory: for a probable misread, those the id was read in."))
 
 
 class FramePose(BaseModel):
@@ -457,11 +466,11 @@ _EXAMPLE_SURVEY_RESULT: dict[str, Any] = {
     "principal_point": [318.7, 241.2], "dist": [-0.118, 0.094, 0.0, 0.0, 0.0],
     "intrinsics_std": {"focal_px": 2.7, "principal_point_px": [1.9, 1.6], "k1": 0.004, "k2": 0.011},
     "warnings": [_EXAMPLE_WARNING],
-    "card_warnings": [{"kind": "few views", "target_ids": [12], "message": _EXAMPLE_WARNING}],
+    "card_warnings": [{"kind": "few views", "target_ids": [12], "message": _EXAMPLE_WARNING, "frames": []}],
     "timing_s": {"intrinsics": 0.4, "initial": 0.2, "register": 3.1, "bundle": 5.8, "scale": 0.1,
                  "covariance": 0.9},
-    "frames_used": 4, "detections": 7, "feature_tracks": False,
-    "stage_s": {"detecting": 0.21, "reconstructing": 0.35},
+    "frames_used": 4, "detections": 7, "feature_tracks": True,
+    "stage_s": {"detecting": 0.21, "tracking": 0.12, "reconstructing": 0.35},
     "trajectory": [
         {"R": _EXAMPLE_R, "t": [-0.5918, -0.311, -1.742], "position": [0.95, 0.42, 1.55]},
         {"R": [[0.9921, -0.0312, -0.1215], [0.0215, 0.9968, -0.0803], [0.1236, 0.0771, 0.9893]],
@@ -498,7 +507,9 @@ class SurveyResult(BaseModel):
         "Seconds per stage of the reconstruction: intrinsics, initial, register, bundle, scale, covariance."))
     frames_used: int = Field(description="Frames read from the upload, evenly spaced (at most max_frames).")
     detections: int = Field(description="Targets detected over those frames, counted once per frame.")
-    feature_tracks: bool = Field(False, description="Whether the scene's own points were tracked too.")
+    feature_tracks: bool = Field(False, description=(
+        "Whether the scene's own points were tracked beside the cards (the survey's default; false when it was "
+        "asked for the cards alone)."))
     stage_s: dict[str, float] = Field(default_factory=dict, description=(
         "Seconds each stage took: `detecting` (every frame's targets, spread over the job engine's workers), "
         "`tracking` (the scene's points, with feature_tracks), `reconstructing` (structure from motion)."))

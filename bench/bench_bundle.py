@@ -71,9 +71,10 @@ from app.core.detection import DetectedTarget
 from app.core.geometry import Camera, Pose
 from app.core.survey import Reconstruction, bundle_adjust
 from app.core.survey._bundle_kernels import warm_up
-from app.core.survey.bundle import camera_from_intrinsics
+from app.core.survey.bundle import ReducedSolver, camera_from_intrinsics
 from app.core.survey.cards import PAIR_UNITS, PAIRS
 from app.core.survey.points import FeatureObservations, RobustLoss
+from app.core.survey.policy import FeatureKeyframes
 from app.core.survey.state import Tracks
 from app.core.survey.tracks import collect_tracks
 from app.sim import BENCH_CAMERA, BENCH_ROOM, frame_truth
@@ -267,15 +268,18 @@ def make_problem(seed: int, n_frames: int, n_features: int) -> Problem:
 # --- the engines ----------------------------------------------------------------------
 
 
-def solve_fidotrack(problem: Problem, converged: bool) -> Solution:
+def solve_fidotrack(problem: Problem, converged: bool, solver: ReducedSolver = ReducedSolver.SPARSE) -> Solution:
     """`bundle_adjust` on the problem: until a step gains nothing (its default), or with
-    Ceres's default function tolerance."""
+    Ceres's default function tolerance; every frame's feature observations adjusted
+    jointly (no keyframes: the same problem Ceres solves), the reduced system solved by
+    ``solver``."""
     use = np.ones(len(problem.tracks.frame), bool)
     start, cpu = time.perf_counter(), time.process_time()
     out, info = bundle_adjust(problem.start, problem.tracks, use, True, PRIOR, loss_scale=LOSS_SCALE,
                               max_iterations=MAX_ITERATIONS, features=problem.features,
                               feature_X=problem.feature_start if problem.features is not None else None,
-                              tolerance=CONVERGED_TOLERANCE if converged else CERES_TOLERANCE)
+                              tolerance=CONVERGED_TOLERANCE if converged else CERES_TOLERANCE, solver=solver,
+                              keyframes=FeatureKeyframes(None))
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     feature_X = info.feature_X if info.feature_X is not None else np.zeros((0, 3))
     return Solution("fidotrack", out.camera, out.rvec, out.tvec, out.X, feature_X, info.iterations, seconds, cpu,
@@ -562,6 +566,8 @@ def main() -> None:
                         help="the stopping rules to run: until converged, and at Ceres's default tolerance")
     parser.add_argument("--ceres-linear-solver", default="SPARSE_SCHUR",
                         help="Ceres's linear solver (DENSE_SCHUR and ITERATIVE_SCHUR are slower here)")
+    parser.add_argument("--solver", choices=[s.value for s in ReducedSolver], default=ReducedSolver.SPARSE.value,
+                        help="fidotrack's factorisation of the reduced system with feature points")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     modules = _ceres_modules()
@@ -572,7 +578,8 @@ def main() -> None:
             problem = make_problem(args.seed, args.frames, n)
             solutions = []
             for converged in [rule == "converged" for rule in args.stops]:
-                solutions.append(_fastest(args.repeats, solve_fidotrack, problem, converged))
+                solutions.append(_fastest(args.repeats, solve_fidotrack, problem, converged,
+                                          ReducedSolver(args.solver)))
                 if modules is not None:
                     solutions.append(_fastest(args.repeats, solve_ceres, problem, modules, False, converged,
                                               args.ceres_linear_solver))

@@ -8,7 +8,15 @@ gets a fresh database and data directory and the same upload, through the REST A
 client sends it; the job's own `stage_s` says how long detection (fanned out over the
 workers) and the reconstruction (one worker) took.
 
-Run: ``.venv/bin/python bench/bench_jobs.py [--frames 1000] [--cache DIR]`` (a markdown table).
+With ``--feature-tracks`` the job also tracks the scene's own points (after detection,
+in the job's process: the job's ``stage_s`` has ``tracking`` too) and the survey adjusts
+them with the cards. ``--only-embedded`` runs the embedded default alone, and
+``--compare-with DIR`` runs it a second time, in turn, on the checkout in DIR (another
+version of fidotrack, imported first through PYTHONPATH): today's code against that one,
+side by side, on the same machine in the same minutes.
+
+Run: ``.venv/bin/python bench/bench_jobs.py [--frames 1000] [--cache DIR] [--feature-tracks]
+[--only-embedded] [--compare-with DIR]`` (markdown tables).
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ class Run:
     name: str
     job_s: float
     detecting_s: float
+    tracking_s: float
     reconstructing_s: float
     frames: int
     n_targets: int
@@ -93,15 +102,19 @@ def _wait_ready(url: str) -> None:
     raise RuntimeError("the server did not become ready")
 
 
-def survey_once(name: str, video: Path, n_workers: int | None, frames: int) -> Run:
+def survey_once(name: str, video: Path, n_workers: int | None, frames: int, feature_tracks: bool = False,
+                code: Path | None = None) -> Run:
     """One survey of `video` on a fresh service: with `n_workers`, on a scheduler of its
-    own with that many worker processes; None: the embedded default."""
+    own with that many worker processes; None: the embedded default. `code`: run that
+    checkout of fidotrack instead of this one."""
     with tempfile.TemporaryDirectory(prefix="fidotrack-bench-jobs-") as folder:
         data = Path(folder)
         port = _free_port()
         env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data), "FIDOTRACK_PORT": str(port),
                "FIDOTRACK_LOG_LEVEL": "WARNING"}
         env.pop("FIDOTRACK_DATABASE_URL", None)
+        if code is not None:
+            env["PYTHONPATH"] = str(code.resolve())
         commands = []
         if n_workers is not None:
             scheduler_port = str(_free_port())
@@ -117,7 +130,8 @@ def survey_once(name: str, video: Path, n_workers: int | None, frames: int) -> R
                                    ).json()["id"]
                 with video.open("rb") as upload:
                     started = time.perf_counter()
-                    reply = http.post(f"/environments/{env_id}/survey", data={"max_frames": str(frames)},
+                    form = {"max_frames": str(frames), "feature_tracks": "true" if feature_tracks else "false"}
+                    reply = http.post(f"/environments/{env_id}/survey", data=form,
                                       files={"video": ("walk.mp4", upload, "video/mp4")})
                 reply.raise_for_status()
                 job_id = reply.json()["id"]
@@ -131,26 +145,58 @@ def survey_once(name: str, video: Path, n_workers: int | None, frames: int) -> R
         if job["status"] != "succeeded":
             raise RuntimeError(f"{name}: the survey {job['status']}: {job.get('error')}")
         result = job["result"]
-        return Run(name, job_s, result["stage_s"]["detecting"], result["stage_s"]["reconstructing"],
+        stage_s = result["stage_s"]
+        return Run(name, job_s, stage_s["detecting"], stage_s.get("tracking", 0.0), stage_s["reconstructing"],
                    result["frames_used"], result["n_targets"], result["rms_px"], job["attempt"])
+
+
+def print_comparison(runs: list[Run]) -> None:
+    """Each run's stages and their shares of the job, and each run's time against the
+    first's."""
+    first = runs[0]
+    print("| run | job s | detecting s | tracking s | reconstructing s | other s | shares (detect / track / "
+          "reconstruct) | job against the first | cards | RMS px |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for run in runs:
+        other = run.job_s - run.detecting_s - run.tracking_s - run.reconstructing_s
+        shares = " / ".join(f"{100 * x / run.job_s:.0f} %" for x in (run.detecting_s, run.tracking_s,
+                                                                     run.reconstructing_s))
+        print(f"| {run.name} | {run.job_s:.1f} | {run.detecting_s:.1f} | {run.tracking_s:.1f} | "
+              f"{run.reconstructing_s:.1f} | {other:.1f} | {shares} | {run.job_s / first.job_s:.2f} | "
+              f"{run.n_targets} | {run.rms_px:.3f} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--cache", type=Path, help="keep the rendered video here between runs")
+    parser.add_argument("--feature-tracks", action="store_true", help="track the scene's points too")
+    parser.add_argument("--only-embedded", action="store_true", help="the embedded default alone")
+    parser.add_argument("--compare-with", type=Path, metavar="DIR",
+                        help="also run the embedded default on the fidotrack checkout in DIR")
     args = parser.parse_args()
     cache = args.cache or Path(tempfile.mkdtemp(prefix="fidotrack-bench-video-"))
     cache.mkdir(parents=True, exist_ok=True)
     video = cache / f"bench_room_calibration_{args.frames}.mp4"
     if not video.exists():
         render_video(video, args.frames)
-    runs = [survey_once("embedded default", video, None, args.frames),
-            survey_once("1 engine worker", video, 1, args.frames),
-            survey_once("2 engine workers", video, 2, args.frames)]
+    features = args.feature_tracks
+    heading = (f"\n{args.frames}-frame survey of the bench room (H.264 640x480, {video.stat().st_size / 1e6:.1f} MB"
+               f"{', feature tracks' if features else ''}); {os.cpu_count()} cores, "
+               f"{platform.processor() or platform.machine()}\n")
+    if args.only_embedded or args.compare_with is not None:
+        runs = [survey_once("embedded default", video, None, args.frames, features)]
+        if args.compare_with is not None:
+            runs.append(survey_once(f"embedded default, {args.compare_with.name}", video, None, args.frames, features,
+                                    args.compare_with))
+        print(heading)
+        print_comparison(runs)
+        return
+    runs = [survey_once("embedded default", video, None, args.frames, features),
+            survey_once("1 engine worker", video, 1, args.frames, features),
+            survey_once("2 engine workers", video, 2, args.frames, features)]
     one = runs[1]
-    print(f"\n{args.frames}-frame survey of the bench room (H.264 640x480, {video.stat().st_size / 1e6:.1f} MB); "
-          f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}\n")
+    print(heading)
     print("| run | job s | detecting s | detection fps | reconstructing s | detection speed-up | job speed-up | "
           "cards | RMS px | attempt |")
     print("|---|---|---|---|---|---|---|---|---|---|")

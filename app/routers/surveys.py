@@ -26,10 +26,11 @@ class SurveyForm(BaseModel):
     marker_size_m: float | None = Field(None, description="Printed card side; default: the environment's.")
     intrinsics: str | None = Field(None, description='JSON {"width","height","K","dist"}: fixes the camera.')
     max_frames: int | None = Field(None, description="Frames to use, evenly spaced (default from settings).")
-    feature_tracks: bool = Field(False, description=(
-        "Also track the scene's own points (the walls' texture) and register frames through them: frames that "
-        "see one card or none, and cards never filmed together, join the map. The map still holds the cards "
-        "only."))
+    feature_tracks: bool = Field(True, description=(
+        "Track the scene's own points (the walls' texture) beside the cards and register frames through them: "
+        "frames that see one card or none, and cards never filmed together, join the map. The map still holds "
+        "the cards only. On by default; false: the cards alone. Walls with too little texture to track leave "
+        "the map resting on the cards alone, with a warning (kind `plain walls`)."))
 
 
 _SURVEY_FILES = {

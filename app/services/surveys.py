@@ -7,9 +7,10 @@ sizes as the bytes come; once the file is whole, OpenCV can open it and read a f
 frame, resolution and length within the limits, every Motion JPEG frame's declared size
 within them too; images decodable. Then it is handed to a job.
 The job, in a worker process, detects targets in the chosen frames with the
-environment's classifier, runs structure from motion (`app.core.survey`) and stores
-the map in the same transaction that marks the job succeeded: a failed or cancelled
-survey leaves the previous map untouched.
+environment's classifier, tracks the walls' own texture through them (unless asked for
+the cards alone; walls too plain to track get a warning), runs structure from motion
+(`app.core.survey`) and stores the map in the same transaction that marks the job
+succeeded: a failed or cancelled survey leaves the previous map untouched.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from app.core.geometry import Camera
 from app.core.imagecodec import ImageError, decode_gray, peek_size
 from app.core.features import FeatureTracker, exclusion_mask
 from app.core.survey import FeatureObservations, SurveyError, survey
+from app.core.survey.features import texture_warning
 from app.schemas import CameraModel, JobOut, MapChange, MapDocument
 from app.services import classifiers, environments, images, jobs
 from app.services.errors import Invalid, TooLarge, UnsupportedMedia
@@ -171,7 +173,7 @@ class SurveyParams(BaseModel):
     classifier_id: int
     family: str
     max_pixels: int
-    feature_tracks: bool = False  # track the scene's own points beside the cards
+    feature_tracks: bool = True  # track the scene's own points beside the cards
     max_video_pixels: int | None = None  # largest frame of a video (None: max_pixels)
 
 
@@ -244,7 +246,7 @@ def submit_survey(
     marker_size_m: float | None,
     intrinsics: str | None,
     max_frames: int | None,
-    feature_tracks: bool = False,
+    feature_tracks: bool = True,
 ) -> JobOut:
     """Queue the survey job of a stored upload (its folder is the job's). The caller
     removes the folder when this refuses it: no row is written then."""
@@ -443,6 +445,10 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     result = survey(detections, params.width, params.height, params.marker_size_m, intrinsics=intrinsics,
                     progress=progress, features=features)
     stage_s["reconstructing"] = time.perf_counter() - reconstructing
+    plain = texture_warning(features, len(detections)) if features is not None else None
+    if plain is not None:
+        result.map_warnings.append(plain)
+        result.warnings.append(plain.message)
     document = MapDocument.model_validate(result.to_map_document(frame="survey", survey_job_id=context.job_id))
     summary = result.summary()
     # The calibration trajectory: the camera of each frame used (None: not registered).

@@ -59,7 +59,7 @@ def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room:
         env = api.post("/environments", json={"name": "room", "marker_size_m": 0.25}).json()["id"]
         api.put(f"/environments/{env}/map", json=example_map(2)).raise_for_status()
         job = api.post(f"/environments/{env}/survey", files={"video": ("v.avi", room.video, "video/avi")},
-                       timeout=60).json()
+                       data={"feature_tracks": "false"}, timeout=60).json()
         state = wait_for_job(api, job["id"], lambda state: state["progress"] > 0.05 or state["status"] in FINISHED,
                              timeout=60, poll=0.05)
         assert state["status"] == "running", state
@@ -77,7 +77,7 @@ def test_server_killed_during_a_survey_restarts_consistent(tmp_path: Path, room:
         assert api.get(f"/environments/{env}/map").json() == example_map(2)
         # The restarted server surveys normally.
         again = api.post(f"/environments/{env}/survey", files={"video": ("v.avi", room.video, "video/avi")},
-                         timeout=60).json()
+                         data={"feature_tracks": "false"}, timeout=60).json()
         state = wait_for_job(api, again["id"])
         assert state["status"] == "succeeded", state
         assert api.get(f"/environments/{env}/map").json()["survey_job_id"] == again["id"]
@@ -143,7 +143,8 @@ def test_survey_and_several_tracking_clients_at_once_lose_nothing(client: TestCl
     true_map = room.scene.map_document(room.camera)
     client.put(f"/environments/{tracked}/map", json=true_map).raise_for_status()
     surveyed = client.post("/environments", json={"name": "surveyed", "marker_size_m": 0.25}).json()["id"]
-    job = client.post(f"/environments/{surveyed}/survey", files={"video": ("v.avi", room.video, "video/avi")}).json()
+    job = client.post(f"/environments/{surveyed}/survey", files={"video": ("v.avi", room.video, "video/avi")},
+                      data={"feature_tracks": "false"}).json()
 
     results: dict[int, list[dict]] = {}
     failures: list[BaseException] = []

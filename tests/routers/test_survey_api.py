@@ -50,13 +50,14 @@ def _post_video(client: TestClient, env: int, data: bytes, **form: str):
 def test_survey_of_a_rendered_room_gives_its_camera_and_discs(client: TestClient, room) -> None:
     scene, camera, video = room
     env = _environment(client)
-    reply = _post_video(client, env, video)
+    reply = _post_video(client, env, video, feature_tracks="false")  # the cards alone
     assert reply.status_code == 202, reply.text
     job = reply.json()
     assert reply.headers["location"] == f"/jobs/{job['id']}" and job["kind"] == "survey"
     body = wait_for_job(client, job["id"])
     assert body["status"] == "succeeded", body
     result = body["result"]
+    assert result["feature_tracks"] is False and "tracking" not in result["stage_s"]
     assert result["n_registered"] >= 50 and result["rms_px"] < 0.5
     assert len(result["trajectory"]) == result["frames_used"]
     # The warnings about parts of the map name their cards (the web app shows them against the cards).
@@ -98,15 +99,16 @@ def test_survey_of_a_rendered_room_gives_its_camera_and_discs(client: TestClient
     assert np.linalg.norm(first[1] - first[0]) == pytest.approx(0.6 * MARKER_M, rel=0.02)
 
 
-def test_survey_with_feature_tracks_maps_the_room_from_the_video(client: TestClient, room) -> None:
+def test_survey_tracks_features_by_default_and_maps_the_room_from_the_video(client: TestClient, room) -> None:
     scene, _, video = room
     env = _environment(client)
-    reply = _post_video(client, env, video, feature_tracks="true")
+    reply = _post_video(client, env, video)
     assert reply.status_code == 202, reply.text
     body = wait_for_job(client, reply.json()["id"])
     assert body["status"] == "succeeded", body
     result = body["result"]
-    assert result["feature_tracks"] is True and result["n_registered"] >= 50
+    assert result["feature_tracks"] is True and result["n_registered"] >= 50 and "tracking" in result["stage_s"]
+    assert "plain walls" not in {w["kind"] for w in result["card_warnings"]}  # the room's walls are textured
     truth = {t.id: t.discs for t in scene.targets}
     surveyed = {t["id"]: np.asarray(t["discs"]) for t in client.get(f"/environments/{env}/map").json()["targets"]}
     assert len(surveyed) >= 12 and set(surveyed) <= set(truth)
@@ -216,7 +218,7 @@ def test_survey_from_a_set_of_images(client: TestClient, room, tmp_path: Path) -
             files.append(("images", (f"f{len(files):03d}.jpg", cv2.imencode(".jpg", frame)[1].tobytes(), "image/jpeg")))
     capture.release()
     env = _environment(client)
-    reply = client.post(f"/environments/{env}/survey", files=files)
+    reply = client.post(f"/environments/{env}/survey", files=files, data={"feature_tracks": "false"})
     assert reply.status_code == 202, reply.text
     body = wait_for_job(client, reply.json()["id"])
     assert body["status"] == "succeeded", body

@@ -75,12 +75,17 @@ class DetectedTarget:
         Confidence 0..1: how clearly the weakest check passed.
     disc_radii : ndarray, shape (4,)
         Imaged disc radii in pixels (sqrt of the disc's dark area / pi).
+    code_gap : float
+        The code's margin: how much worse the best other code (or rotation) fits the
+        read than its own (`identification.CodeMatch.gap`: at least `CODE_GAP_MIN`, or
+        `MOTION_GAP_TIGHT` for a near-exact smeared read); NaN when not known.
     """
 
     id: int
     discs: np.ndarray
     score: float
     disc_radii: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    code_gap: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         """The target as JSON-able values.
@@ -297,7 +302,7 @@ def _select(res: _Judged, quads: np.ndarray, used_ids: set[int], used_cands: set
         used_cands |= members
         printed = _PRINTED_ORDER[res.shifts[r]]
         out.append(DetectedTarget(id=tid, discs=res.refined[r][printed], score=float(score_of[r]),
-                                  disc_radii=res.radii[r][printed]))
+                                  disc_radii=res.radii[r][printed], code_gap=float(res.gap[r])))
     return out
 
 

@@ -1,5 +1,6 @@
 """What to film to fix a weak map: one warning per weak or unconnected card, and one for
-a pure pan, each saying what the user should film (docs/filming.md)."""
+a pure pan, each saying what the user should film (docs/filming.md); and one per id taken
+for a misread, which names its frames and asks for nothing."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from app.core.survey.state import Tracks, Views
+from app.core.survey.state import Misread, Tracks, Views
 
 #: The range of viewing directions the advice asks for, degrees: well above the survey's
 #: own threshold (`place.MIN_BASELINE_DEG`), so that a card filmed again is well placed.
@@ -40,6 +41,9 @@ class WarningKind(enum.Enum):
     NOT_SURVEYED = "not surveyed"  # detected but not in the map
     DISCONNECTED = "disconnected"  # in the map, but never seen together with the rest
     PURE_PAN = "pure pan"  # the camera only turned: no baseline anywhere
+    MISREAD = "probable misread"  # an id read a few times, weakly or on another card: not a card, not in the map
+    PLAIN_WALLS = "plain walls"  # too little texture to track: the map rests on the cards alone
+    UNCERTAIN = "uncertain"  # in the map, placed too uncertainly to trust (reached through card-less frames)
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class MapWarning:
     kind: WarningKind
     target_ids: tuple[int, ...]
     message: str
+    frames: tuple[int, ...] = ()  # the input frames it is about (a probable misread's reads), if any
 
 
 @dataclass(frozen=True)
@@ -204,6 +209,68 @@ def map_advice(targets: list[TargetViews], tracks: Tracks, views: Views, used: n
                 f"{'cards ' + _ids(ids) if len(ids) > 1 else f'card {ids[0]}'}; film "
                 f"{'them' if len(ids) > 1 else 'it'} in the same shot as card {_either(near)} "
                 f"(the nearest mapped {'neighbours' if len(near) > 1 else 'neighbour'})")))
+    return out
+
+
+def _frames(frames: tuple[int, ...]) -> str:
+    if len(frames) == 1:
+        return f"in frame {frames[0]} only"
+    return f"in frames {', '.join(str(f) for f in frames[:-1])} and {frames[-1]} only"
+
+
+def misread_advice(misreads: tuple[Misread, ...]) -> list[MapWarning]:
+    """One warning per probable misread (`tracks.probable_misreads`): the id, the frames it
+    was read in, and why it is not taken for a card; nothing to film for it.
+
+    Parameters
+    ----------
+    misreads : tuple of Misread
+        The ids left out of the survey as probable misreads.
+
+    Returns
+    -------
+    list of MapWarning
+        Of kind `WarningKind.MISREAD`, naming the id and its frames.
+    """
+    out = []
+    for m in misreads:
+        why = ", with a weak code" if m.weak else ""
+        if m.of_id is not None:
+            why += f", where card {m.of_id} is seen in the frames around it"
+        of = f"card {m.of_id}" if m.of_id is not None else "another card"
+        out.append(MapWarning(WarningKind.MISREAD, (m.id,), (
+            f"id {m.id} was read {_frames(m.frames)}{why}: probably a misread of {of}, so it is not in the map "
+            f"(a card {m.id}, if the room has one, was not seen clearly enough to map)"), m.frames))
+    return out
+
+
+def uncertainty_advice(uncertain: list[tuple[int, float]], mapped: list[TargetViews]) -> list[MapWarning]:
+    """One warning per card placed too uncertainly: its uncertainty and what to film.
+
+    Parameters
+    ----------
+    uncertain : list of (int, float)
+        (id, largest disc std_m in metres) of each uncertain card (`verify.uncertain_cards`).
+    mapped : list of TargetViews
+        Every card of the map.
+
+    Returns
+    -------
+    list of MapWarning
+        Kind `WarningKind.UNCERTAIN`, one per card.
+    """
+    out = []
+    weak = {card for card, _ in uncertain}
+    rest = [t for t in mapped if t.id not in weak]
+    centres = {t.id: t.centre for t in mapped}
+    for card, std in uncertain:
+        near = _nearest(centres[card], rest)
+        amount = f"+/- {100 * std:.0f} cm" if np.isfinite(std) else "by an unknown amount"
+        film = (f"film it in the same shot as card {_either(near)} (the nearest well-placed "
+                f"{'neighbours' if len(near) > 1 else 'neighbour'})" if near else "film it together with other cards")
+        out.append(MapWarning(WarningKind.UNCERTAIN, (card,), (
+            f"card {card}: its position is uncertain ({amount}, 1 sigma): it was reached only through frames in which "
+            f"no other card was in view, where the camera's path drifts; {film}")))
     return out
 
 

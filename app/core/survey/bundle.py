@@ -16,9 +16,13 @@ Natural-feature points (`points.FeatureObservations`: a second kind of track, th
 of points each seen in a few frames, with their own noise level and robust loss) link
 the frames that see them, so the cameras are no longer independent given the points.
 With them, the feature points are eliminated instead (each a 3x3 block, independent
-given the cameras and the intrinsics) and the dense system over [intrinsics, discs,
-cameras] is solved exactly every iteration; the two loops over many tiny blocks (each
+given the cameras and the intrinsics) and the system over [intrinsics, discs, cameras] is
+solved exactly every iteration: block-sparse (cameras linked only where they share a
+feature point), factorised by SuperLU in a fill-reducing order (`ReducedSolver`; the
+dense Cholesky is kept as the reference). The two loops over many tiny blocks (each
 observation's terms, each point's Schur complement) are compiled (`_bundle_kernels`).
+Beyond `policy.FeatureKeyframes` frames with feature observations, those of every k-th
+frame only are adjusted jointly and the other frames' poses are fitted to the result.
 Without feature points nothing of this runs: the result is the discs' alone, to the bit.
 The benchmark against Ceres is ``bench/bench_bundle.py``.
 """
@@ -26,20 +30,39 @@ The benchmark against Ceres is ``bench/bench_bundle.py``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import cv2
 import numpy as np
+import scipy.sparse
 from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse.linalg import splu
 
 from app.core.geometry import Camera
-from app.core.survey._bundle_kernels import add_observations, eliminate_points
+from app.core.survey._bundle_kernels import (
+    add_discs_sparse,
+    add_observations,
+    add_observations_sparse,
+    camera_pairs,
+    eliminate_points,
+    eliminate_points_sparse,
+)
 from app.core.survey.cards import PAIR_UNITS, PAIRS
 from app.core.survey.points import FeatureObservations
+from app.core.survey.policy import FeatureKeyframes
 from app.core.survey.state import Reconstruction, Tracks, project_frame
 
 #: Huber's threshold (whitened) while the map grows: loose, since residuals of pixels are
 #: then the unrefined lens's and poses' error, not outliers.
 GROWTH_LOSS_SCALE = 100.0
+
+
+class ReducedSolver(str, Enum):
+    """How the reduced system over [intrinsics, discs, cameras] is solved when feature
+    points take part."""
+
+    SPARSE = "sparse"  # SuperLU over the cameras' block pattern, a fill-reducing order
+    DENSE = "dense"  # dense Cholesky: cubic in the frames (the reference)
 
 
 @dataclass(frozen=True, eq=False)
@@ -450,11 +473,17 @@ def _feature_jacobians(fp: _FeatureProblem, cam: Camera, cams: np.ndarray, Xf: n
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each feature observation's Jacobian over its camera (K, 2, 6), the intrinsics
     (K, 2, n_intr) and its point (K, 2, 3)."""
-    K = len(fp.obs)
+    return _jacobians(len(fp.obs), fp.slices, fp.op, cam, cams, Xf, n_intr)
+
+
+def _jacobians(K: int, slices: list[tuple[int, slice]], op: np.ndarray, cam: Camera, cams: np.ndarray, X: np.ndarray,
+               n_intr: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Jacobians of K observations (camera ``k``'s at ``slices``, of points ``X[op]``)
+    over their camera, the intrinsics and their point."""
     J_c, J_i, J_p = np.empty((K, 2, 6)), np.empty((K, 2, n_intr)), np.empty((K, 2, 3))
-    for k, s in fp.slices:
+    for k, s in slices:
         n = s.stop - s.start
-        _, jac = project_frame(cam, cams[k, :3], cams[k, 3:], Xf[fp.op[s]], True)
+        _, jac = project_frame(cam, cams[k, :3], cams[k, 3:], X[op[s]], True)
         assert jac is not None
         jac = jac.reshape(n, 2, -1)
         J_c[s] = jac[:, :, :6]
@@ -474,8 +503,10 @@ def _per_point(fp: _FeatureProblem, a: np.ndarray) -> np.ndarray:
 
 
 def _feature_system(p: _Problem, fp: _FeatureProblem, joint: _Joint, intr: np.ndarray, cams: np.ndarray,
-                    X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray) -> _FeatureSystem:
-    """The undamped normal equations over x, with the feature points' direct terms."""
+                    X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray,
+                    share: np.ndarray | None = None) -> _FeatureSystem:
+    """The undamped normal equations over x, with the feature points' direct terms (each
+    feature observation's weight times its ``share``, when given: `_track_shares`)."""
     cam = _camera_of(p, intr)
     ni, n = p.n_intr, joint.n
     H = np.zeros((n, n))
@@ -497,7 +528,8 @@ def _feature_system(p: _Problem, fp: _FeatureProblem, joint: _Joint, intr: np.nd
     J_c, J_i, J_p = _feature_jacobians(fp, cam, cams, Xf, ni)
     K, P = len(fp.obs), len(fp.points)
     W, g_p, F_c, C_i = np.zeros((P, 3, 3)), np.zeros((P, 3)), np.empty((K, 6, 3)), np.zeros((P, ni, 3))
-    add_observations(H, g, W, g_p, F_c, C_i, J_c, J_i, J_p, fp.features.weights(rf), rf, fp.col, fp.op)
+    weights = fp.features.weights(rf) if share is None else fp.features.weights(rf) * share
+    add_observations(H, g, W, g_p, F_c, C_i, J_c, J_i, J_p, weights, rf, fp.col, fp.op)
     return _FeatureSystem(H, g, W, g_p, F_c, C_i)
 
 
@@ -525,28 +557,224 @@ def _feature_step(p: _Problem, fp: _FeatureProblem, joint: _Joint, fs: _FeatureS
     """The damped step: (dx over [intrinsics, discs, cameras], dXf over the feature points).
 
     Raises numpy's LinAlgError when the damped reduced system is not positive definite."""
-    ni = p.n_intr
     H, g, W_inv = _feature_reduced(p, fp, joint, fs, lam)
     dx = -cho_solve(cho_factor(H, check_finite=False), g, check_finite=False)
     if not np.isfinite(dx).all():
         raise np.linalg.LinAlgError("the damped reduced system is singular")
-    # Back-substitution: each feature point's step given the cameras' and intrinsics'.
+    return dx, _feature_points_step(p, fp, joint, fs.F_c, fs.C_i, fs.g_p, W_inv, dx)
+
+
+def _feature_points_step(p: _Problem, fp: _FeatureProblem, joint: _Joint, F_c: np.ndarray, C_i: np.ndarray,
+                         g_p: np.ndarray, W_inv: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """Back-substitution: each feature point's step given the cameras' and intrinsics'."""
+    ni = p.n_intr
     dc = np.zeros((len(joint.frames), 6))
     dc[joint.ccol >= 0] = dx[joint.ccol[joint.ccol >= 0][:, None] + np.arange(6)]
-    coupling = _per_point(fp, (fs.F_c.transpose(0, 2, 1) @ dc[fp.cam][:, :, None])[:, :, 0])
+    coupling = _per_point(fp, (F_c.transpose(0, 2, 1) @ dc[fp.cam][:, :, None])[:, :, 0])
     if ni:
-        coupling += (fs.C_i.transpose(0, 2, 1) @ dx[:ni])
-    dXf = -(W_inv @ (fs.g_p + coupling)[:, :, None])[:, :, 0]
-    return dx, dXf
+        coupling += (C_i.transpose(0, 2, 1) @ dx[:ni])
+    return -(W_inv @ (g_p + coupling)[:, :, None])[:, :, 0]
+
+
+# --- the reduced system, block-sparse --------------------------------------------------------
+#
+# Along a video a frame shares feature points with its neighbours and, through loop
+# closures, with a few frames of an earlier visit: the camera-camera block of the reduced
+# system is mostly empty, and a dense Cholesky of it grows as the cube of the frames. The
+# border (intrinsics and discs, n_y columns: the intrinsics couple to every camera) is
+# kept dense over every row; the camera-camera block as 6x6 blocks over the pairs of
+# cameras that share a feature point. The whole system is factorised by SuperLU
+# (`scipy.sparse.linalg.splu`) in a fill-reducing order (minimum degree on A + A^T),
+# without pivoting off the diagonal: an LDL^T in effect, whose pivots are all positive
+# exactly when the system is positive definite (the test Cholesky makes).
+
+
+@dataclass(frozen=True, eq=False)
+class _SparsePattern:
+    """The reduced system's nonzero pattern, fixed for one bundle adjustment, and how its
+    parts (``Hy`` (n, n_y) and the camera blocks) map to a CSC matrix."""
+
+    n_y: int
+    n: int
+    fcam: np.ndarray  # (K,) each feature observation's free camera; -1 for the held one
+    dcam: np.ndarray  # (N,) each disc observation's free camera; -1 for the held one
+    indptr: np.ndarray  # (n_free + 1,) block rows of the camera-camera block
+    indices: np.ndarray  # (nnzb,) block columns, sorted within each row
+    diag: np.ndarray  # (n_free,) each free camera's diagonal block
+    bb: tuple[np.ndarray, np.ndarray]  # border-border entries kept (rows, columns)
+    cb: tuple[np.ndarray, np.ndarray]  # camera-border entries kept (rows >= n_y, columns < n_y)
+    order: np.ndarray  # the values in gathering order -> CSC order
+    csc_indices: np.ndarray
+    csc_indptr: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _SparseSystem:
+    """`_FeatureSystem` with the reduced-side block stored as `_SparsePattern` says."""
+
+    Hy: np.ndarray  # (n, n_y) every row's border columns
+    blocks: np.ndarray  # (nnzb, 6, 6) camera-camera blocks
+    g: np.ndarray  # (n,)
+    W: np.ndarray  # (Pf, 3, 3)
+    g_p: np.ndarray  # (Pf, 3)
+    F_c: np.ndarray  # (K, 6, 3)
+    C_i: np.ndarray  # (Pf, n_intr, 3)
+
+
+def _sparse_pattern(p: _Problem, fp: _FeatureProblem, joint: _Joint) -> _SparsePattern:
+    n_y, n = joint.n_y, joint.n
+    ni = p.n_intr
+    free_index = np.where(joint.ccol >= 0, (joint.ccol - n_y) // 6, -1)
+    n_free = int((joint.ccol >= 0).sum())
+    fcam = free_index[fp.cam]
+    # The feature points each free camera sees (observations are sorted by camera).
+    seen = fcam >= 0
+    cam_ptr = np.r_[0, np.cumsum(np.bincount(fcam[seen], minlength=n_free))]
+    indptr, indices = camera_pairs(cam_ptr, fp.op[seen], fp.by_point, fp.bounds, fcam, n_free)
+    block_row = np.repeat(np.arange(n_free), np.diff(indptr))
+    diag = np.flatnonzero(block_row == indices)
+    # Border-border: the intrinsics with everything, the discs of one card together (the
+    # card prior; each disc's own 3x3 block among them).
+    card = p.points // 4
+    a, b = np.nonzero(card[:, None] == card[None, :])
+    d_rows = (ni + 3 * a[:, None, None] + np.arange(3)[None, :, None] + 0 * np.arange(3)[None, None, :]).ravel()
+    d_cols = (ni + 3 * b[:, None, None] + 0 * np.arange(3)[None, :, None] + np.arange(3)[None, None, :]).ravel()
+    i_rows = np.repeat(np.arange(ni), n_y)
+    i_cols = np.tile(np.arange(n_y), ni)
+    bb_rows = np.r_[i_rows, i_cols[i_cols >= ni], d_rows]
+    bb_cols = np.r_[i_cols, i_rows[i_cols >= ni], d_cols]
+    # Camera-border: every free camera with the intrinsics, and with each disc it sees.
+    disc_cam = free_index[joint.dmap[np.repeat(np.arange(len(p.slices)), [s.stop - s.start for s in p.slices])]]
+    disc_cam = disc_cam.astype(np.int64).reshape(-1)
+    keep = disc_cam >= 0
+    pairs = np.unique(np.c_[disc_cam[keep], p.op[keep]], axis=0) if keep.any() else np.zeros((0, 2), int)
+    cb_rows = np.r_[(n_y + 6 * np.arange(n_free)[:, None, None] + np.arange(6)[None, :, None]
+                     + 0 * np.arange(ni)[None, None, :]).ravel(),
+                    (n_y + 6 * pairs[:, 0, None, None] + np.arange(6)[None, :, None]
+                     + 0 * np.arange(3)[None, None, :]).ravel()]
+    cb_cols = np.r_[(0 * np.arange(n_free)[:, None, None] + 0 * np.arange(6)[None, :, None]
+                     + np.arange(ni)[None, None, :]).ravel(),
+                    (ni + 3 * pairs[:, 1, None, None] + 0 * np.arange(6)[None, :, None]
+                     + np.arange(3)[None, None, :]).ravel()]
+    blk_rows = (n_y + 6 * block_row[:, None, None] + np.arange(6)[None, :, None] + 0 * np.arange(6)[None, None, :]
+                ).ravel()
+    blk_cols = (n_y + 6 * indices[:, None, None] + 0 * np.arange(6)[None, :, None] + np.arange(6)[None, None, :]
+                ).ravel()
+    rows = np.r_[bb_rows, cb_rows, cb_cols, blk_rows]
+    cols = np.r_[bb_cols, cb_cols, cb_rows, blk_cols]
+    order = np.lexsort((rows, cols))
+    return _SparsePattern(
+        n_y=n_y, n=n, fcam=fcam, dcam=disc_cam, indptr=indptr, indices=indices, diag=diag, bb=(bb_rows, bb_cols),
+        cb=(cb_rows, cb_cols), order=order, csc_indices=rows[order],
+        csc_indptr=np.r_[0, np.cumsum(np.bincount(cols, minlength=n))],
+    )
+
+
+def _sparse_system(p: _Problem, fp: _FeatureProblem, joint: _Joint, sp: _SparsePattern, intr: np.ndarray,
+                   cams: np.ndarray, X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray,
+                   share: np.ndarray | None = None) -> _SparseSystem:
+    """`_feature_system` into the block-sparse storage."""
+    cam = _camera_of(p, intr)
+    ni, n_y = p.n_intr, joint.n_y
+    Hy = np.zeros((joint.n, n_y))
+    blocks = np.zeros((len(sp.indices), 6, 6))
+    g = np.zeros(joint.n)
+    # The discs: the terms of `_normal_equations`, in one compiled loop.
+    d_slices = [(int(joint.dmap[k]), s) for k, s in enumerate(p.slices)]
+    J_c, J_i, J_p = _jacobians(len(p.obs), d_slices, p.op, cam, cams, X, ni)
+    add_discs_sparse(Hy, blocks, sp.indptr, sp.indices, g, J_c, J_i, J_p, _weights(p, r), r, sp.dcam, p.op)
+    _add_prior(p, X, Hy[:n_y], g[:n_y])
+    J_c, J_i, J_p = _feature_jacobians(fp, cam, cams, Xf, ni)
+    K, P = len(fp.obs), len(fp.points)
+    W, g_p, F_c, C_i = np.zeros((P, 3, 3)), np.zeros((P, 3)), np.empty((K, 6, 3)), np.zeros((P, ni, 3))
+    weights = fp.features.weights(rf) if share is None else fp.features.weights(rf) * share
+    add_observations_sparse(Hy, blocks, sp.indptr, sp.indices, g, W, g_p, F_c, C_i, J_c, J_i, J_p,
+                            weights, rf, sp.fcam, fp.op)
+    return _SparseSystem(Hy, blocks, g, W, g_p, F_c, C_i)
+
+
+def _add_prior(p: _Problem, X: np.ndarray, V: np.ndarray, g_y: np.ndarray) -> None:
+    """The card prior's normal equations, added to those over y (as `_normal_equations`)."""
+    if not len(p.prior_pairs):
+        return
+    n_intr = p.n_intr
+    diff = X[p.prior_pairs[:, 0]] - X[p.prior_pairs[:, 1]]
+    u = diff / (np.linalg.norm(diff, axis=1, keepdims=True) + 1e-300) / p.prior_sigma
+    rp = _prior_residuals(p, X)
+    for side, sign in ((0, 1.0), (1, -1.0)):
+        ia = n_intr + 3 * p.prior_pairs[:, side][:, None] + np.arange(3)
+        for side2, sign2 in ((0, 1.0), (1, -1.0)):
+            ib = n_intr + 3 * p.prior_pairs[:, side2][:, None] + np.arange(3)
+            np.add.at(V, (ia[:, :, None], ib[:, None, :]), sign * sign2 * u[:, :, None] * u[:, None, :])
+        np.add.at(g_y, ia, sign * u * rp[:, None])
+
+
+def _sparse_reduced(fp: _FeatureProblem, sp: _SparsePattern, ss: _SparseSystem, lam: float = 0.0
+                    ) -> tuple[scipy.sparse.csc_matrix, np.ndarray, np.ndarray]:
+    """`_feature_reduced` over the pattern: (H as a CSC matrix, g, each feature point's
+    damped block's inverse)."""
+    Hy, blocks, g = ss.Hy.copy(), ss.blocks.copy(), ss.g.copy()
+    if lam > 0:
+        i = np.arange(sp.n_y)
+        Hy[i, i] += lam * (Hy[i, i] + 1e-12)
+        k = np.arange(6)
+        diagonal = blocks[sp.diag[:, None], k, k]
+        blocks[sp.diag[:, None], k, k] = diagonal + lam * (diagonal + 1e-12)
+    W_inv = np.linalg.inv(_damped(ss.W, lam)) if lam > 0 else np.linalg.pinv(ss.W, hermitian=True)
+    eliminate_points_sparse(Hy, blocks, sp.indptr, sp.indices, g, W_inv, ss.F_c, ss.C_i, ss.g_p, fp.by_point,
+                            fp.bounds, sp.fcam)
+    cb = Hy[sp.cb]
+    values = np.concatenate([Hy[sp.bb], cb, cb, blocks.ravel()])
+    H = scipy.sparse.csc_matrix((values[sp.order], sp.csc_indices, sp.csc_indptr), shape=(sp.n, sp.n))
+    return H, g, W_inv
+
+
+def _sparse_factor(H: scipy.sparse.csc_matrix) -> scipy.sparse.linalg.SuperLU:
+    """H = P^T L U P^T in a fill-reducing order, pivots on the diagonal only.
+
+    Raises numpy's LinAlgError when H is not positive definite (a pivot is not positive)."""
+    try:
+        lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError as error:  # exactly singular
+        raise np.linalg.LinAlgError(str(error)) from error
+    if not (np.array_equal(lu.perm_r, lu.perm_c) and (lu.U.diagonal() > 0).all()):
+        raise np.linalg.LinAlgError("the reduced system is not positive definite")
+    return lu
+
+
+def _sparse_step(p: _Problem, fp: _FeatureProblem, joint: _Joint, sp: _SparsePattern, ss: _SparseSystem,
+                 lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_feature_step` with the sparse factorisation."""
+    H, g, W_inv = _sparse_reduced(fp, sp, ss, lam)
+    dx = -_sparse_factor(H).solve(g)
+    if not np.isfinite(dx).all():
+        raise np.linalg.LinAlgError("the damped reduced system is singular")
+    return dx, _feature_points_step(p, fp, joint, ss.F_c, ss.C_i, ss.g_p, W_inv, dx)
+
+
+def _sparse_covariance_system(fp: _FeatureProblem, sp: _SparsePattern, ss: _SparseSystem) -> np.ndarray:
+    """The undamped system over [intrinsics, discs] with the feature points and the
+    cameras eliminated (the cameras through their sparse factor, the border's columns as
+    right-hand sides).
+
+    Raises numpy's LinAlgError when the cameras' block is not positive definite."""
+    H, _, _ = _sparse_reduced(fp, sp, ss)
+    n_y = sp.n_y
+    H_cc = H[n_y:, n_y:].tocsc()
+    H_cy = H[n_y:, :n_y].toarray()
+    H_yy = H[:n_y, :n_y].toarray()
+    solved = _sparse_factor(H_cc).solve(H_cy) if H_cc.shape[0] else np.zeros_like(H_cy)
+    return H_yy - H_cy.T @ solved
 
 
 def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObservations, feature_X: np.ndarray,
                           obs: np.ndarray, points: np.ndarray, max_iterations: int, tolerance: float,
-                          with_covariance: bool) -> tuple[Reconstruction, BundleInfo]:
+                          with_covariance: bool, solver: ReducedSolver) -> tuple[Reconstruction, BundleInfo]:
     """`bundle_adjust` with feature points: Levenberg-Marquardt over [intrinsics, discs,
     cameras] with the feature points eliminated."""
     joint = _joint(p, features, obs)
     fp = _feature_structure(features, obs, points, joint)
+    sp = _sparse_pattern(p, fp, joint) if solver is ReducedSolver.SPARSE else None
     ni = p.n_intr
     intr = np.array([rec.camera.fx, rec.camera.cx, rec.camera.cy, rec.camera.dist[0], rec.camera.dist[1]])
     cams = np.c_[rec.rvec[joint.frames], rec.tvec[joint.frames]]
@@ -566,11 +794,18 @@ def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObs
     lam = 1e-4
     iterations = 0
     for iterations in range(1, max_iterations + 1):
-        fs = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf)
+        if sp is None:
+            fs: _FeatureSystem | _SparseSystem = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf)
+        else:
+            fs = _sparse_system(p, fp, joint, sp, intr, cams, X, Xf, r, rf)
         improved = False
         for _ in range(12):
             try:
-                dx, dXf = _feature_step(p, fp, joint, fs, lam)
+                if isinstance(fs, _SparseSystem):
+                    assert sp is not None
+                    dx, dXf = _sparse_step(p, fp, joint, sp, fs, lam)
+                else:
+                    dx, dXf = _feature_step(p, fp, joint, fs, lam)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -598,7 +833,7 @@ def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObs
             break
     covariance = None
     if with_covariance and len(p.points):
-        covariance = _feature_covariance(p, fp, joint, intr, cams, X, Xf, r, rf)
+        covariance = _feature_covariance(p, fp, joint, sp, intr, cams, X, Xf, r, rf)
     out = Reconstruction(_camera_of(p, intr), rec.rvec.copy(), rec.tvec.copy(), rec.X.copy())
     out.rvec[joint.frames], out.tvec[joint.frames] = cams[:, :3], cams[:, 3:]
     out.X[p.points] = X
@@ -613,22 +848,194 @@ def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObs
     return out, info
 
 
-def _feature_covariance(p: _Problem, fp: _FeatureProblem, joint: _Joint, intr: np.ndarray, cams: np.ndarray,
-                        X: np.ndarray, Xf: np.ndarray, r: np.ndarray, rf: np.ndarray) -> np.ndarray:
+def _track_shares(fp: _FeatureProblem) -> np.ndarray:
+    """Each feature observation's share of independent information in the covariance:
+    one over its point's number of observations.
+
+    A tracker's error in one frame is mostly still there in the next (the same patch,
+    matched to a slowly moving template), so a track's views are far from independent
+    measurements. Counted as independent, thousands of points pin the cameras as if their
+    errors averaged out, and the cards' std_m come out five to seven times smaller than
+    their errors (centre-loop walk). Counting each track once, spread over its views,
+    keeps what the tracks determine (the geometry between the frames they span) and drops
+    the averaging they cannot give.
+    """
+    return 1.0 / np.bincount(fp.op, minlength=len(fp.points))[fp.op]
+
+
+def _feature_covariance(p: _Problem, fp: _FeatureProblem, joint: _Joint, sp: _SparsePattern | None,
+                        intr: np.ndarray, cams: np.ndarray, X: np.ndarray, Xf: np.ndarray, r: np.ndarray,
+                        rf: np.ndarray) -> np.ndarray:
     """Marginal covariance of [intrinsics, disc points] with feature points: the cameras
-    and feature points eliminated from the undamped system."""
-    fs = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf)
-    H, _, _ = _feature_reduced(p, fp, joint, fs)
+    and feature points eliminated from the undamped system, each track's views counted
+    as one observation's worth (`_track_shares`); the noise level from every residual at
+    its full weight."""
     n_y = joint.n_y
-    H_yc, H_cc = H[:n_y, n_y:], H[n_y:, n_y:]
-    try:
-        S = H[:n_y, :n_y] - H_yc @ cho_solve(cho_factor(H_cc, check_finite=False), H_yc.T, check_finite=False)
-    except np.linalg.LinAlgError:  # a camera the observations leave free in some direction
-        S = H[:n_y, :n_y] - H_yc @ np.linalg.pinv(H_cc, rcond=1e-12, hermitian=True) @ H_yc.T
+    share = _track_shares(fp)
+    S: np.ndarray | None = None
+    if sp is not None:
+        try:
+            S = _sparse_covariance_system(fp, sp, _sparse_system(p, fp, joint, sp, intr, cams, X, Xf, r, rf, share))
+        except np.linalg.LinAlgError:  # a camera left free in some direction: the dense pseudo-inverse below
+            S = None
+    if S is None:
+        fs = _feature_system(p, fp, joint, intr, cams, X, Xf, r, rf, share)
+        H, _, _ = _feature_reduced(p, fp, joint, fs)
+        H_yc, H_cc = H[:n_y, n_y:], H[n_y:, n_y:]
+        try:
+            S = H[:n_y, :n_y] - H_yc @ cho_solve(cho_factor(H_cc, check_finite=False), H_yc.T, check_finite=False)
+        except np.linalg.LinAlgError:  # a camera the observations leave free in some direction
+            S = H[:n_y, :n_y] - H_yc @ np.linalg.pinv(H_cc, rcond=1e-12, hermitian=True) @ H_yc.T
     n_obs = len(p.obs) + len(fp.obs)
     dof = max(2 * n_obs - 6 * len(joint.frames) - p.n_y - 3 * len(fp.points) + 6, 1)
     chi2 = float((_weights(p, r)[:, None] * r**2).sum() + (fp.features.weights(rf)[:, None] * rf**2).sum())
     return np.linalg.pinv(S, rcond=1e-12, hermitian=True) * (chi2 / dof)
+
+
+def _fit_the_other_frames(rec: Reconstruction, info: BundleInfo, p: _Problem, features: FeatureObservations,
+                          obs: np.ndarray, points: np.ndarray, others: np.ndarray) -> tuple[Reconstruction, BundleInfo]:
+    """After an adjustment over keyframes: each other frame's pose fitted to the adjusted
+    map (discs and feature points held), then each feature point that was not adjusted
+    fitted to the poses; the info over every observation (the covariance is the
+    keyframes' adjustment's)."""
+    assert info.feature_X is not None
+    Xf = info.feature_X.copy()
+    adjusted = np.zeros(len(Xf), bool)
+    adjusted[info.feature_points] = True
+    cam = rec.camera
+    # Each frame's observations of either kind (both sorted by frame).
+    d_slice = dict(zip(p.frames.tolist(), p.slices, strict=True))
+    held = obs[adjusted[features.track[obs]]]
+    f_bounds = np.searchsorted(features.frame[held], np.r_[others, others + 1].reshape(2, -1))
+    for f, b, e in zip(others.tolist(), *f_bounds, strict=True):
+        if f == info.held_frame:  # the gauge
+            continue
+        d = np.arange(len(p.obs))[d_slice.get(f, slice(0, 0))]
+        k = held[b:e]
+        rec.rvec[f], rec.tvec[f] = _fit_pose(cam, rec.rvec[f], rec.tvec[f], rec.X[p.points[p.op[d]]], p.uv[d],
+                                             p.precision[d], p.loss_scale, Xf[features.track[k]], features.uv[k],
+                                             features)
+    rest = np.setdiff1d(points, info.feature_points)
+    if len(rest):
+        Xf[rest] = _fit_points(cam, rec, features, obs[np.isin(features.track[obs], rest)], Xf, rest)
+    joint = _joint(p, features, obs)
+    fp = _feature_structure(features, obs, points, joint)
+    cams = np.c_[rec.rvec[joint.frames], rec.tvec[joint.frames]]
+    X = rec.X[p.points]
+    r = _residuals(p, cam, cams[joint.dmap], X)
+    rf = _feature_residuals(fp, cam, cams, Xf[points])
+    cost = _robust_cost(p, r, _prior_residuals(p, X)) + float(features.cost(rf).sum())
+    out = BundleInfo(
+        iterations=info.iterations, cost=cost, rms_px=_rms(r), obs=p.obs, points=p.points, n_intr=info.n_intr,
+        residuals=r, weights=_weights(p, r), covariance=info.covariance, held_frame=info.held_frame,
+        feature_X=Xf, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
+        feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
+    )
+    return rec, out
+
+
+def _fit_pose(cam: Camera, rvec: np.ndarray, tvec: np.ndarray, X: np.ndarray, uv: np.ndarray, precision: np.ndarray,
+              loss_scale: float, Xf: np.ndarray, uvf: np.ndarray, features: FeatureObservations,
+              max_iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's pose fitted to held points: Levenberg-Marquardt over its 6 parameters,
+    the discs' observations weighted as in the adjustment, the feature points' by their
+    own loss."""
+    root = np.sqrt(precision)
+    pts = np.r_[X, Xf]
+    target = np.r_[uv, uvf]
+    n_d = len(X)
+    if len(pts) < 3:
+        return rvec, tvec
+
+    def residuals(x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        proj, jac = project_frame(cam, x[:3], x[3:], pts, jacobian)
+        return proj - target, None if jac is None else jac[:, :6]
+
+    def cost(rr: np.ndarray) -> float:
+        e = np.linalg.norm(rr[:n_d], axis=1) * root
+        c = np.where(e <= loss_scale, 0.5 * e**2, loss_scale * (e - 0.5 * loss_scale))
+        return float(c.sum() + features.cost(rr[n_d:]).sum())
+
+    x = np.r_[rvec, tvec]
+    rr, J = residuals(x, True)
+    c0 = cost(rr)
+    lam = 1e-4
+    for _ in range(max_iterations):
+        e = np.linalg.norm(rr[:n_d], axis=1) * root
+        w = np.r_[precision * np.where(e <= loss_scale, 1.0, loss_scale / np.maximum(e, 1e-300)),
+                  features.weights(rr[n_d:])]
+        assert J is not None
+        sw = np.repeat(w, 2)[:, None]
+        A, b = (J * sw).T @ J, (J * sw).T @ rr.ravel()
+        for _ in range(8):
+            try:
+                dx = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), b)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            r_new, _ = residuals(x + dx, False)
+            c_new = cost(r_new)
+            if c_new < c0:
+                break
+            lam *= 10
+        else:
+            break
+        gain = c0 - c_new
+        x = x + dx
+        rr, J = residuals(x, True)
+        c0 = c_new
+        lam = max(lam / 10, 1e-12)
+        if gain < 1e-6 * max(c0, 1e-12):
+            break
+    return x[:3], x[3:]
+
+
+def _fit_points(cam: Camera, rec: Reconstruction, features: FeatureObservations, obs: np.ndarray, Xf: np.ndarray,
+                points: np.ndarray, iterations: int = 5) -> np.ndarray:
+    """Feature points ``points`` fitted to the poses of their observations ``obs``
+    (Gauss-Newton with the features' loss, each point's step kept only where it lowers
+    that point's cost)."""
+    obs = obs[np.argsort(features.frame[obs], kind="stable")]
+    frames = np.unique(features.frame[obs])
+    cam_of = np.searchsorted(frames, features.frame[obs])
+    op = np.searchsorted(points, features.track[obs])
+    X = Xf[points].copy()
+    starts = np.r_[0, np.flatnonzero(np.diff(cam_of)) + 1]
+    ends = np.r_[starts[1:], len(obs)]
+
+    def project(X: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+        r = np.empty((len(obs), 2))
+        J = np.empty((len(obs), 2, 3))
+        for b, e in zip(starts, ends, strict=True):
+            f = frames[cam_of[b]]
+            proj, jac = project_frame(cam, rec.rvec[f], rec.tvec[f], X[op[b:e]], jacobian)
+            r[b:e] = proj
+            if jac is not None:
+                R, _ = cv2.Rodrigues(rec.rvec[f])
+                J[b:e] = jac.reshape(e - b, 2, -1)[:, :, 3:6] @ R
+        return r - features.uv[obs], J
+
+    def point_cost(r: np.ndarray) -> np.ndarray:
+        return np.bincount(op, features.cost(r), minlength=len(points))
+
+    r, J = project(X, True)
+    c = point_cost(r)
+    for _ in range(iterations):
+        w = features.weights(r)
+        W = np.zeros((len(points), 3, 3))
+        g = np.zeros((len(points), 3))
+        np.add.at(W, op, w[:, None, None] * np.einsum("kis,kit->kst", J, J))
+        np.add.at(g, op, w[:, None] * np.einsum("kis,ki->ks", J, r))
+        step = -(np.linalg.pinv(W, hermitian=True) @ g[:, :, None])[:, :, 0]
+        r_new, _ = project(X + step, False)
+        c_new = point_cost(r_new)
+        better = c_new < c
+        if not better.any():
+            break
+        X[better] += step[better]
+        r, J = project(X, True)
+        c = point_cost(r)
+    return X
 
 
 def _rms(r: np.ndarray) -> float:
@@ -649,6 +1056,8 @@ def bundle_adjust(
     feature_X: np.ndarray | None = None,
     feature_use: np.ndarray | None = None,
     tolerance: float = 1e-12,
+    solver: ReducedSolver = ReducedSolver.SPARSE,
+    keyframes: FeatureKeyframes | None = None,
 ) -> tuple[Reconstruction, BundleInfo]:
     """Robust sparse bundle adjustment (Levenberg-Marquardt, cameras eliminated).
 
@@ -694,6 +1103,14 @@ def bundle_adjust(
     feature_use : (len(features),) ndarray of bool, optional
         The feature observations to use (default: all; those of unregistered frames or
         nan points are left out anyway).
+    solver : ReducedSolver
+        How the reduced system is solved with feature points (the same step within
+        rounding; dense: the reference, cubic in the frames).
+    keyframes : FeatureKeyframes, optional
+        (Default: ``FeatureKeyframes()``.) The frames whose feature observations are adjusted jointly; the other frames'
+        poses are then fitted to the adjusted map (their discs' observations take part
+        in the joint adjustment all the same), and feature points seen in fewer than two
+        keyframes to the adjusted poses.
 
     Returns
     -------
@@ -708,9 +1125,19 @@ def bundle_adjust(
         if feature_X is None:
             raise ValueError("feature observations need their points, feature_X")
         f_obs, f_points = _feature_problem(rec, features, feature_X, feature_use)
+        seen = np.unique(features.frame[f_obs])
+        key = (keyframes or FeatureKeyframes())(seen)
+        if len(f_obs) and not key.all():
+            k_use = np.zeros(len(features), bool)
+            k_use[f_obs] = np.isin(features.frame[f_obs], seen[key])
+            k_obs, k_points = _feature_problem(rec, features, feature_X, k_use)
+            if len(k_obs):
+                out, info = _adjust_with_features(rec, p, features, feature_X, k_obs, k_points, max_iterations,
+                                                  tolerance, with_covariance, solver)
+                return _fit_the_other_frames(out, info, p, features, f_obs, f_points, seen[~key])
         if len(f_obs):
             return _adjust_with_features(rec, p, features, feature_X, f_obs, f_points, max_iterations, tolerance,
-                                         with_covariance)
+                                         with_covariance, solver)
     if not len(p.obs):  # nothing to adjust: every view set aside, or nothing registered and placed
         return (Reconstruction(rec.camera, rec.rvec.copy(), rec.tvec.copy(), rec.X.copy()),
                 BundleInfo(iterations=0, cost=0.0, rms_px=float("nan"), obs=p.obs, points=p.points, n_intr=p.n_intr,

@@ -287,8 +287,28 @@ def lens_from_cards(cards_px: Sequence[np.ndarray], width: int, height: int, foc
     return (f, k1) if 0.2 * scale < f < 6.0 * scale else None
 
 
+def cards_lens(tracks: Tracks, width: int, height: int) -> tuple[float, float] | None:
+    """The lens the cards' own shapes give: `focal_from_cards`, then `lens_from_cards`.
+
+    Parameters
+    ----------
+    tracks : Tracks
+        The observations: every view is a card.
+    width, height : int
+        The image size, px.
+
+    Returns
+    -------
+    (float, float) or None
+        The focal length (px) and k1; None when the cards do not determine them.
+    """
+    cards = tracks.uv.reshape(-1, 4, 2)
+    focal = focal_from_cards(cards, width, height)
+    return lens_from_cards(cards, width, height, focal) if focal is not None else None
+
+
 def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera | None,
-                   warnings: list[str]) -> Camera:
+                   warnings: list[str], lens: tuple[float, float] | None = None) -> Camera:
     """The camera the survey starts from (step 1).
 
     Parameters
@@ -302,6 +322,8 @@ def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera |
     warnings : list of str
         Warnings for the user; appended to when the cards do not determine the focal
         length.
+    lens : (float, float), optional
+        The cards' lens (`cards_lens`) when the caller has it already.
 
     Returns
     -------
@@ -314,7 +336,8 @@ def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera |
         return intrinsics
     cards = tracks.uv.reshape(-1, 4, 2)
     focal = focal_from_cards(cards, width, height)
-    lens = lens_from_cards(cards, width, height, focal) if focal is not None else None
+    if lens is None and focal is not None:
+        lens = lens_from_cards(cards, width, height, focal)
     if focal is None:
         # Start from a typical ~60 degree lens; the bundle adjustment refines it.
         focal = 0.85 * max(width, height)

@@ -16,6 +16,8 @@ function over one `SurveyState` (docs/survey.md walks through them):
    noise, outlier removal, and again, until nothing changes;
 5. `scale.apply_metric_scale`: the scale of the printed cards;
 6. `result.survey_result`: each disc's uncertainty, warnings about weak parts of the map.
+7. `verify`: the lens against the cards' own (`verify.LensAgreement`: a map whose focal
+   length the cards disagree with is refused), cards placed too uncertainly named.
 
 numpy / OpenCV / SciPy only; no I/O.
 """
@@ -30,7 +32,7 @@ from app.core.detection import DetectedTarget
 from app.core.geometry import Camera
 from app.core.survey.bundle import GROWTH_LOSS_SCALE, BundleInfo, bundle_adjust
 from app.core.survey.features import prune_features, register_by_features, triangulate_features
-from app.core.survey.lens import initial_camera
+from app.core.survey.lens import cards_lens, initial_camera
 from app.core.survey.place import place_targets
 from app.core.survey.points import FeatureObservations
 from app.core.survey.policy import ShouldBundle, ShouldFitLens
@@ -48,6 +50,7 @@ from app.core.survey.state import (
     SurveyState,
 )
 from app.core.survey.tracks import collect_tracks, subsample_frames
+from app.core.survey.verify import LensAgreement
 
 #: With feature points, the bundle adjustment stops once an iteration gains less than this
 #: fraction of the cost: Huber's reweighting then creeps on for a hundred iterations, each
@@ -128,7 +131,8 @@ def survey(
     tracks = collect_tracks(frames, used, warnings)
 
     clock.report(SurveyStage.INTRINSICS, 0.0)
-    camera = initial_camera(tracks, width, height, intrinsics, warnings)
+    card_lens = cards_lens(tracks, width, height) if intrinsics is None else None
+    camera = initial_camera(tracks, width, height, intrinsics, warnings, card_lens)
     clock.lap(SurveyStage.INTRINSICS)
 
     clock.report(SurveyStage.INITIAL, 0.05)
@@ -159,6 +163,10 @@ def survey(
     if not np.isfinite(result.rms_px) or result.rms_px > 2 * outlier_px:
         raise SurveyError(f"the survey did not converge (reprojection RMS {result.rms_px:.1f} px): the video does "
                           "not show the targets from enough viewpoints, or many targets are misidentified")
+    if card_lens is not None and not result.intrinsics_fixed:
+        lens = LensAgreement(result.camera.fx, card_lens[0])
+        if not lens.agrees:
+            raise SurveyError(lens.message())
     clock.report(SurveyStage.DONE, 1.0)
     return result
 

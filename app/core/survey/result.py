@@ -9,13 +9,21 @@ from typing import Any
 import numpy as np
 
 from app.core.geometry import Camera, Pose
-from app.core.survey.advice import MapWarning, TargetViews, lens_warning, map_advice
+from app.core.survey.advice import (
+    MapWarning,
+    TargetViews,
+    lens_warning,
+    map_advice,
+    misread_advice,
+    uncertainty_advice,
+)
 from app.core.survey.bundle import BundleInfo
 from app.core.survey.cards import max_angle_deg
 from app.core.survey.features import feature_groups
 from app.core.survey.place import MIN_BASELINE_DEG
 from app.core.survey.scale import MetricScale
 from app.core.survey.state import SurveyError, SurveyState, Tracks, Views
+from app.core.survey.verify import focal_std_message, uncertain_cards
 
 #: A target seen in fewer registered frames is flagged as weak.
 MIN_VIEWS = 3
@@ -124,8 +132,9 @@ class SurveyResult:
         dict
             Frames, registered frames, targets, RMS, the lens and its standard deviations
             (``intrinsics_std``: None when the intrinsics were given), warnings (every one
-            as text; ``card_warnings``: those about parts of the map, with their kind and
-            the ids of the cards they name) and timing.
+            as text; ``card_warnings``: those about parts of the map, with their kind, the
+            ids of the cards they name and, for a probable misread, the frames it was read
+            in) and timing.
         """
         std = self.intrinsics_std
 
@@ -144,8 +153,8 @@ class SurveyResult:
                 "focal_px": number(std[0]), "principal_point_px": [number(std[1]), number(std[2])],
                 "k1": number(std[3]), "k2": number(std[4])},
             "warnings": list(self.warnings),
-            "card_warnings": [{"kind": w.kind.value, "target_ids": list(w.target_ids), "message": w.message}
-                              for w in self.map_warnings],
+            "card_warnings": [{"kind": w.kind.value, "target_ids": list(w.target_ids), "message": w.message,
+                               "frames": list(w.frames)} for w in self.map_warnings],
             "timing_s": dict(self.timing_s),
         }
 
@@ -212,12 +221,18 @@ def map_advice_of(results: list[SurveyedTarget], tracks: Tracks, views: Views, s
     Returns
     -------
     list of MapWarning
-        Each with its kind, the cards it names and its text.
+        Each with its kind, the cards it names and its text; a card placed too
+        uncertainly (`verify.uncertain_cards`) and not named already gets one of its own;
+        the ids left out as probable misreads last (`advice.misread_advice`).
     """
     targets = [TargetViews(r.id, r.discs.mean(axis=0), r.n_views, r.baseline_deg, r.distance_m) for r in results]
     centres = np.zeros((0, 3)) if camera_centres is None else camera_centres
-    return map_advice(targets, tracks, views, surveyed.used, surveyed.targets, centres, MIN_VIEWS,
-                      MIN_BASELINE_DEG, frame_groups)
+    advice = map_advice(targets, tracks, views, surveyed.used, surveyed.targets, centres, MIN_VIEWS,
+                        MIN_BASELINE_DEG, frame_groups)
+    named = {card for w in advice for card in w.target_ids}
+    uncertain = [(card, std) for card, std in uncertain_cards([r.id for r in results], [r.std_m for r in results])
+                 if card not in named]
+    return advice + uncertainty_advice(uncertain, targets) + misread_advice(tracks.misreads)
 
 
 def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews, scale: MetricScale,
@@ -262,9 +277,10 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     advice = map_advice_of(results, tracks, views, surveyed, camera_centres, feature_groups(state))
     state.warnings += [w.message for w in advice]
     lens_std = info.intrinsics_std()
-    warning = lens_warning(lens_std)
-    if warning is not None:
-        state.warnings.append(warning)
+    for warning in (lens_warning(lens_std),
+                    None if lens_std is None else focal_std_message(rec.camera.fx, float(lens_std[0]))):
+        if warning is not None:
+            state.warnings.append(warning)
     trajectory: list[Pose | None] = [None] * n_input_frames
     for fi, index in enumerate(used_frames):
         if registered[fi]:

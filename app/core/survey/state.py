@@ -112,6 +112,17 @@ class SurveySettings:
         return np.c_[DISC_CENTRES * self.marker_size_m, np.zeros(4)]
 
 
+@dataclass(frozen=True)
+class Misread:
+    """An id taken for a misread of another card's code (`tracks.probable_misreads`): read
+    in a few frames only, each read weak or where another card is."""
+
+    id: int
+    frames: tuple[int, ...]  # the input frames it was read in
+    of_id: int | None  # the card seen where it was read, if any
+    weak: bool  # every read's code was weak (`tracks.MISREAD_WEAK_GAP`)
+
+
 @dataclass
 class Tracks:
     """Every disc observation, flat, sorted by frame (4 rows per view, discs in order)."""
@@ -123,6 +134,7 @@ class Tracks:
     ids: np.ndarray  # (T,) target id of each target index
     n_frames: int
     precision: np.ndarray  # (M,) inverse expected variance of each observation, px^-2 (`disc_precision`)
+    misreads: tuple[Misread, ...] = ()  # ids left out as probable misreads (`tracks.probable_misreads`)
 
     @property
     def point(self) -> np.ndarray:

@@ -44,7 +44,7 @@ export async function surveyPage(view, environmentId) {
   const file = h("input", { type: "file", name: "video", accept: "video/*,.mp4,.mov,.avi", required: true });
   const size = h("input", { type: "number", min: 10, step: "any", value: environment.marker_size_m * 1000 });
   const maxFrames = h("input", { type: "number", min: 2, placeholder: "default", id: "survey-frames" });
-  const features = h("input", { type: "checkbox" });
+  const features = h("input", { type: "checkbox", id: "survey-features", checked: true });
   const uploadBar = h("progress", { max: 1, value: 0 });
   const uploadText = h("span", { class: "muted" }, "");
   const jobBar = h("progress", { id: "job-progress", max: 1, value: 0 });
@@ -134,7 +134,7 @@ export async function surveyPage(view, environmentId) {
     h("label", {}, "Video of the room", file),
     h("label", {}, "Printed card side (mm)", size),
     h("label", {}, "Frames to use", maxFrames),
-    h("label", {}, h("span", {}, features, " also track the walls' texture"), ""),
+    h("label", { title: "Unticked: the cards alone" }, h("span", {}, features, " track the walls' texture too"), ""),
     start);
 
   view.append(

@@ -13,6 +13,7 @@ import pytest
 
 from app.core.detection import DetectedTarget
 from app.core.geometry import Camera
+from app.core.survey.points import FeatureObservations
 from app.core.survey.state import StageClock, SurveySettings, SurveyState
 from app.core.survey.tracks import collect_tracks
 from app.sim.examples import BENCH_ROOM, ExampleRoom, RoomWalk
@@ -26,6 +27,65 @@ SURVEY_ROOM = ExampleRoom(
            640, 480))
 
 Frames = list[list[DetectedTarget]]
+
+#: Each wall feature track follows its point through at most this many consecutive frames.
+RUN = 12
+
+
+@functools.cache
+def wall_walk() -> RoomWalk:
+    """The small room's 80-frame calibration walk (seed 7)."""
+    return SURVEY_ROOM.walk(7, 80)
+
+
+def _wall_points(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """m points on the small room's four walls and each wall's inward normal."""
+    w, d, h = SURVEY_ROOM.size
+    wall = rng.integers(4, size=m)
+    along, z = rng.uniform(0.05, 0.95, m), rng.uniform(0.1, h - 0.1, m)
+    X = np.select([wall[:, None] == k for k in range(3)],
+                  [np.c_[along * w, 0 * z, z], np.c_[along * w, d + 0 * z, z], np.c_[0 * z, along * d, z]],
+                  np.c_[w + 0 * z, along * d, z])
+    inward = np.array([[0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]], float)[wall]
+    return X, inward
+
+
+@functools.cache
+def wall_features(sigma_px: float = 0.1, m: int = 6000, seed: int = 3, track_error_px: float = 0.0,
+                  focal_px: float | None = None) -> FeatureObservations:
+    """Tracks of wall points through `wall_walk`: each seen point followed through runs of
+    up to ``RUN`` consecutive frames (a new track per run), with noise of ``sigma_px`` in
+    every view, and with ``track_error_px`` a further error drawn once per track and kept
+    through all its views (a tracker locked onto a patch a little off the point); with
+    ``focal_px``, seen through a lens of that focal length instead of the room's."""
+    walk, camera = wall_walk(), SURVEY_ROOM.camera
+    if focal_px is not None:
+        K = camera.K.copy()
+        K[0, 0] = K[1, 1] = focal_px
+        camera = Camera(K, camera.dist, camera.width, camera.height)
+    rng = np.random.default_rng(seed)
+    X, inward = _wall_points(rng, m)
+    rows: list[tuple[int, int, float, float]] = []
+    live: dict[int, tuple[int, int]] = {}  # point -> (track, frames so far)
+    offsets: list[np.ndarray] = []  # each track's own error
+    for f, pose in enumerate(walk.poses):
+        uv = camera.project_map(X, pose)
+        ray = pose.position - X
+        facing = (ray * inward).sum(axis=1) > 0.3 * np.linalg.norm(ray, axis=1)
+        inside = ((uv >= 4) & (uv <= [camera.width - 5, camera.height - 5])).all(axis=1)
+        seen = np.flatnonzero(camera.in_field(pose.transform(X)) & facing & inside)
+        for j in set(live) - set(seen.tolist()):
+            del live[j]
+        for j in seen.tolist():
+            track, count = live.get(j, (-1, RUN))
+            if count >= RUN:
+                track, count = len(offsets), 0
+                offsets.append(rng.normal(0, track_error_px, 2) if track_error_px else np.zeros(2))
+            live[j] = (track, count + 1)
+            noisy = uv[j] + offsets[track] + rng.normal(0, sigma_px, 2)
+            rows.append((f, track, float(noisy[0]), float(noisy[1])))
+    a = np.array(rows)
+    return FeatureObservations(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64), a[:, 2:4], sigma_px=sigma_px)
 
 
 @pytest.fixture(scope="session")

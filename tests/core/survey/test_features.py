@@ -6,8 +6,6 @@ room's geometry and the walk's true poses, never from the survey) with Gaussian 
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import pytest
 
@@ -17,59 +15,8 @@ from app.core.survey import FeatureObservations, SurveyResult, survey
 from app.core.survey.features import feature_groups, position_std, triangulate_features
 from app.core.survey.state import StageClock, SurveySettings, SurveyState
 from app.core.survey.tracks import collect_tracks
-from app.sim.examples import RoomWalk
 
-from .conftest import SURVEY_ROOM
-
-#: Each feature track follows its point through at most this many consecutive frames.
-RUN = 12
-
-
-@functools.cache
-def _walk() -> RoomWalk:
-    return SURVEY_ROOM.walk(7, 80)
-
-
-def _wall_points(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """m points on the small room's four walls and each wall's inward normal."""
-    w, d, h = SURVEY_ROOM.size
-    wall = rng.integers(4, size=m)
-    along, z = rng.uniform(0.05, 0.95, m), rng.uniform(0.1, h - 0.1, m)
-    X = np.select([wall[:, None] == k for k in range(3)],
-                  [np.c_[along * w, 0 * z, z], np.c_[along * w, d + 0 * z, z], np.c_[0 * z, along * d, z]],
-                  np.c_[w + 0 * z, along * d, z])
-    inward = np.array([[0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]], float)[wall]
-    return X, inward
-
-
-@functools.cache
-def _features(sigma_px: float = 0.1, m: int = 6000, seed: int = 3) -> FeatureObservations:
-    """Tracks of wall points through the walk: each seen point followed through runs of up
-    to ``RUN`` consecutive frames (a new track per run), with noise of ``sigma_px``."""
-    walk, camera = _walk(), SURVEY_ROOM.camera
-    rng = np.random.default_rng(seed)
-    X, inward = _wall_points(rng, m)
-    rows: list[tuple[int, int, float, float]] = []
-    live: dict[int, tuple[int, int]] = {}  # point -> (track, frames so far)
-    n_tracks = 0
-    for f, pose in enumerate(walk.poses):
-        uv = camera.project_map(X, pose)
-        ray = pose.position - X
-        facing = (ray * inward).sum(axis=1) > 0.3 * np.linalg.norm(ray, axis=1)
-        inside = ((uv >= 4) & (uv <= [camera.width - 5, camera.height - 5])).all(axis=1)
-        seen = np.flatnonzero(camera.in_field(pose.transform(X)) & facing & inside)
-        for j in set(live) - set(seen.tolist()):
-            del live[j]
-        for j in seen.tolist():
-            track, count = live.get(j, (-1, RUN))
-            if count >= RUN:
-                track, count = n_tracks, 0
-                n_tracks += 1
-            live[j] = (track, count + 1)
-            noisy = uv[j] + rng.normal(0, sigma_px, 2)
-            rows.append((f, track, float(noisy[0]), float(noisy[1])))
-    a = np.array(rows)
-    return FeatureObservations(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64), a[:, 2:4], sigma_px=sigma_px)
+from .conftest import SURVEY_ROOM, wall_features, wall_walk
 
 
 def _one_card_a_frame(frames: list[list[DetectedTarget]]) -> list[list[DetectedTarget]]:
@@ -81,7 +28,7 @@ def _one_card_a_frame(frames: list[list[DetectedTarget]]) -> list[list[DetectedT
 
 
 def _disc_rms_mm(result: SurveyResult) -> float:
-    truth = {t.id: t.discs for t in _walk().scene.targets}
+    truth = {t.id: t.discs for t in wall_walk().scene.targets}
     src = np.concatenate([t.discs for t in result.targets])
     dst = np.concatenate([truth[t.id] for t in result.targets])
     similar = similarity_from_points(src, dst)
@@ -100,7 +47,7 @@ def sparse_frames(synthetic_frames) -> list[list[DetectedTarget]]:  # type: igno
 
 @pytest.fixture(scope="module")
 def with_features(sparse_frames: list[list[DetectedTarget]]) -> SurveyResult:
-    return _survey(sparse_frames, _features())
+    return _survey(sparse_frames, wall_features())
 
 
 def test_a_walk_with_one_card_a_frame_is_surveyed_whole_through_feature_tracks(
@@ -122,7 +69,7 @@ def test_a_walk_with_one_card_a_frame_is_surveyed_whole_through_feature_tracks(
 
 def test_wrong_feature_matches_do_not_move_the_map(sparse_frames: list[list[DetectedTarget]],
                                                     with_features: SurveyResult) -> None:
-    clean = _features()
+    clean = wall_features()
     rng = np.random.default_rng(5)
     track = clean.track.copy()
     uv = clean.uv.copy()
@@ -146,8 +93,8 @@ def test_wrong_feature_matches_do_not_move_the_map(sparse_frames: list[list[Dete
 
 def test_feature_points_are_triangulated_only_from_views_wide_enough_apart(
         sparse_frames: list[list[DetectedTarget]]) -> None:
-    walk, camera = _walk(), SURVEY_ROOM.camera
-    features = _features()
+    walk, camera = wall_walk(), SURVEY_ROOM.camera
+    features = wall_features()
     frames = sparse_frames
     tracks = collect_tracks(frames, np.arange(len(frames)), [])
     state = SurveyState.start(tracks, camera, SurveySettings(SURVEY_ROOM.marker_size_m), StageClock(), [], features)
@@ -169,7 +116,7 @@ def test_feature_points_are_triangulated_only_from_views_wide_enough_apart(
 
 def test_a_pose_on_points_bunched_together_is_known_to_be_weak() -> None:
     camera = SURVEY_ROOM.camera
-    pose = _walk().poses[0]
+    pose = wall_walk().poses[0]
     rng = np.random.default_rng(0)
     ahead = pose.inverse().transform(np.c_[rng.uniform(-1, 1, (40, 2)), np.full(40, 3.0)])
     bunched = pose.inverse().transform(np.c_[rng.uniform(-0.05, 0.05, (40, 2)), np.full(40, 3.0)])
