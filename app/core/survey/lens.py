@@ -11,6 +11,7 @@ biased by detector noise. The bundle adjustment refines the lens later, from the
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -287,7 +288,15 @@ def lens_from_cards(cards_px: Sequence[np.ndarray], width: int, height: int, foc
     return (f, k1) if 0.2 * scale < f < 6.0 * scale else None
 
 
-def cards_lens(tracks: Tracks, width: int, height: int) -> tuple[float, float] | None:
+@dataclass(frozen=True)
+class CardsLens:
+    """What the cards' own shapes say of the lens."""
+
+    closed_form_px: float | None  # `focal_from_cards`; None: the cards do not determine it
+    fitted: tuple[float, float] | None  # `lens_from_cards`: (focal length px, k1); None: not determined
+
+
+def cards_lens(tracks: Tracks, width: int, height: int) -> CardsLens:
     """The lens the cards' own shapes give: `focal_from_cards`, then `lens_from_cards`.
 
     Parameters
@@ -299,16 +308,17 @@ def cards_lens(tracks: Tracks, width: int, height: int) -> tuple[float, float] |
 
     Returns
     -------
-    (float, float) or None
-        The focal length (px) and k1; None when the cards do not determine them.
+    CardsLens
+        The closed-form focal length and the maximum-likelihood lens, each None when the
+        cards do not determine it.
     """
     cards = tracks.uv.reshape(-1, 4, 2)
     focal = focal_from_cards(cards, width, height)
-    return lens_from_cards(cards, width, height, focal) if focal is not None else None
+    return CardsLens(focal, lens_from_cards(cards, width, height, focal) if focal is not None else None)
 
 
 def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera | None,
-                   warnings: list[str], lens: tuple[float, float] | None = None) -> Camera:
+                   warnings: list[str], lens: CardsLens | None = None) -> Camera:
     """The camera the survey starts from (step 1).
 
     Parameters
@@ -322,7 +332,7 @@ def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera |
     warnings : list of str
         Warnings for the user; appended to when the cards do not determine the focal
         length.
-    lens : (float, float), optional
+    lens : CardsLens, optional
         The cards' lens (`cards_lens`) when the caller has it already.
 
     Returns
@@ -334,16 +344,15 @@ def initial_camera(tracks: Tracks, width: int, height: int, intrinsics: Camera |
     """
     if intrinsics is not None:
         return intrinsics
-    cards = tracks.uv.reshape(-1, 4, 2)
-    focal = focal_from_cards(cards, width, height)
-    if lens is None and focal is not None:
-        lens = lens_from_cards(cards, width, height, focal)
-    if focal is None:
+    if lens is None:
+        lens = cards_lens(tracks, width, height)
+    if lens.fitted is not None:
+        focal, k1 = lens.fitted
+    elif lens.closed_form_px is not None:
+        focal, k1 = lens.closed_form_px, 0.0
+    else:
         # Start from a typical ~60 degree lens; the bundle adjustment refines it.
-        focal = 0.85 * max(width, height)
+        focal, k1 = 0.85 * max(width, height), 0.0
         warnings.append("the cards did not determine an initial focal length (all seen head-on?); "
                         "started from a typical lens")
-    k1 = 0.0
-    if lens is not None:
-        focal, k1 = lens
     return Camera.pinhole(focal, width, height, dist=[k1, 0.0, 0.0, 0.0, 0.0])

@@ -163,8 +163,8 @@ def survey(
     if not np.isfinite(result.rms_px) or result.rms_px > 2 * outlier_px:
         raise SurveyError(f"the survey did not converge (reprojection RMS {result.rms_px:.1f} px): the video does "
                           "not show the targets from enough viewpoints, or many targets are misidentified")
-    if card_lens is not None and not result.intrinsics_fixed:
-        lens = LensAgreement(result.camera.fx, card_lens[0])
+    if card_lens is not None and card_lens.fitted is not None and not result.intrinsics_fixed:
+        lens = LensAgreement(result.camera.fx, card_lens.fitted[0])
         if not lens.agrees:
             raise SurveyError(lens.message())
     clock.report(SurveyStage.DONE, 1.0)

@@ -38,11 +38,13 @@ def wall_walk() -> RoomWalk:
     return SURVEY_ROOM.walk(7, 80)
 
 
-def _wall_points(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """m points on the small room's four walls and each wall's inward normal."""
-    w, d, h = SURVEY_ROOM.size
+def wall_points(rng: np.random.Generator, m: int, margin: tuple[float, float] = (0.05, 0.1),
+                size: tuple[float, float, float] = SURVEY_ROOM.size) -> tuple[np.ndarray, np.ndarray]:
+    """m points on the four walls of a room of ``size``, kept ``margin`` (along the wall as a
+    fraction, from floor and ceiling in metres) off the edges, and each wall's inward normal."""
+    w, d, h = size
     wall = rng.integers(4, size=m)
-    along, z = rng.uniform(0.05, 0.95, m), rng.uniform(0.1, h - 0.1, m)
+    along, z = rng.uniform(margin[0], 1 - margin[0], m), rng.uniform(margin[1], h - margin[1], m)
     X = np.select([wall[:, None] == k for k in range(3)],
                   [np.c_[along * w, 0 * z, z], np.c_[along * w, d + 0 * z, z], np.c_[0 * z, along * d, z]],
                   np.c_[w + 0 * z, along * d, z])
@@ -64,7 +66,7 @@ def wall_features(sigma_px: float = 0.1, m: int = 6000, seed: int = 3, track_err
         K[0, 0] = K[1, 1] = focal_px
         camera = Camera(K, camera.dist, camera.width, camera.height)
     rng = np.random.default_rng(seed)
-    X, inward = _wall_points(rng, m)
+    X, inward = wall_points(rng, m)
     rows: list[tuple[int, int, float, float]] = []
     live: dict[int, tuple[int, int]] = {}  # point -> (track, frames so far)
     offsets: list[np.ndarray] = []  # each track's own error

@@ -14,6 +14,8 @@ from app.core.survey.points import FeatureObservations, RobustLoss
 from app.core.survey.state import Reconstruction, SurveyState
 from app.sim.examples import ExampleRoom
 
+from .conftest import wall_points
+
 PRIOR = (0.2, 1e-5)  # the printed card, 10 um
 
 
@@ -130,16 +132,10 @@ def _wall_features(state: SurveyState, room: ExampleRoom, rng: np.random.Generat
     exact images in a run of up to 6 registered frames that see them (in the lens's field,
     2 px inside the image, on a wall facing the camera), kept when those views are 2
     degrees apart at least: (observations, true points)."""
-    w, d, h = room.size
     rec, camera = state.reconstruction, state.reconstruction.camera
     frames = np.flatnonzero(rec.registered())
     m = 20 * n
-    wall = rng.integers(4, size=m)
-    along, z = rng.uniform(0.1, 0.9, m), rng.uniform(0.2, h - 0.2, m)
-    X = np.select([wall[:, None] == k for k in range(3)],
-                  [np.c_[along * w, 0 * z, z], np.c_[along * w, d + 0 * z, z], np.c_[0 * z, along * d, z]],
-                  np.c_[w + 0 * z, along * d, z])
-    inward = np.array([[0, 1, 0], [0, -1, 0], [1, 0, 0], [-1, 0, 0]], float)[wall]
+    X, inward = wall_points(rng, m, (0.1, 0.2), room.size)
     seen = np.zeros((len(frames), m), bool)
     uv = np.zeros((len(frames), m, 2))
     for i, f in enumerate(frames):
