@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import Detector, load_default_classifier, warm_up
 from app.core.survey import FeatureObservations, SurveyError, SurveyResult, survey
+from app.core.survey.features import texture_warning
 from app.sim import (
     WALKS,
     ExampleWalk,
@@ -231,6 +232,11 @@ def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: l
     run.survey_s = time.perf_counter() - start
     run.mapped, run.warnings = {t.id for t in result.targets}, result.warnings
     run.n_registered, run.kinds = result.n_registered, warning_kinds(result)
+    # The survey job adds the plain-walls warning to the survey's own (the job has the
+    # tracks); so does this bench.
+    plain = texture_warning(features, len(frames)) if features is not None else None
+    if plain is not None:
+        run.kinds.append(str(plain.kind.value))
     run.card_frames_lost = sum(c and p is None for c, p in zip(with_card, result.trajectory, strict=True))
     run.focal_pct = 100 * (result.camera.fx / camera.fx - 1)
     run.lens_warned = lens_warned(result)
