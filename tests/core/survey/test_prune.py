@@ -100,3 +100,16 @@ def test_the_noise_level_is_measured_robustly(true_state: SurveyState) -> None:
     # No noise: floored, so that Huber's loss keeps a scale.
     tracks.uv[:] = exact
     assert whitened_spread(true_state) == 0.01 and noise_variance(true_state) == 0.01**2
+
+
+def test_setting_views_aside_does_not_lower_the_noise_level_that_judges_them(true_state: SurveyState) -> None:
+    """The refinement's outlier threshold is a multiple of the spread: were the views set
+    aside left out of it, each round would cut the threshold and set aside more, until
+    whole cards whose errors are a little larger than the rest are lost."""
+    rng = np.random.default_rng(4)
+    tracks = true_state.tracks
+    tracks.uv += rng.normal(size=tracks.uv.shape) * tracks.expected_px[:, None]
+    before = whitened_spread(true_state)
+    worst = np.argsort(view_errors(true_state, true_state.usable))[-len(true_state.usable) // 5:]
+    true_state.usable[worst] = False
+    assert whitened_spread(true_state) == before
