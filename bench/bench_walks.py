@@ -18,8 +18,10 @@ feature tracks beside them (*features*). A tracking walk through the same room i
 tracked with the surveyed map and with the true one (as ``bench/bench_survey.py`` does).
 
 Run: ``.venv/bin/python bench/bench_walks.py [--rooms 16] [--frames 300] [--walks bench pan ...]
-[--tracks cards|features|both] [--no-floor] [--quick]`` (markdown tables on stdout, one row
-per room last; ``--quick``: 2 rooms, 150-frame walks, 40-frame tracking walks).
+[--tracks cards|features|both] [--no-floor] [--quick] [--exact-discs PX]`` (markdown tables on
+stdout, one row per room last; ``--quick``: 2 rooms, 150-frame walks, 40-frame tracking walks;
+``--exact-discs``: the detected disc centres replaced by the true ones plus noise, to see
+what the detector's bias costs).
 
 A card counts as seen in a frame when the truth has it whole in the image, facing the
 camera at cos > 0.3 and with discs over 4 px; it should be mapped when seen in at least
@@ -43,7 +45,7 @@ import argparse
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -52,7 +54,13 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.detection import Detector, load_default_classifier, warm_up
+from app.core.detection import (
+    DetectedTarget,
+    Detector,
+    load_default_classifier,
+    warm_up,
+)
+from app.core.geometry import Camera
 from app.core.survey import FeatureObservations, SurveyError, SurveyResult, survey
 from app.core.survey.features import texture_warning
 from app.sim import (
@@ -192,9 +200,12 @@ class RoomRun:
 
 
 def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detector,
-             tracking: tuple[list, list, Scene], kinds: list[str], floor: bool) -> list[RoomRun]:  # type: ignore[type-arg]
+             tracking: tuple[list, list, Scene], kinds: list[str], floor: bool,
+             exact_discs_px: float | None = None) -> list[RoomRun]:  # type: ignore[type-arg]
     """Render, detect and feature-track one walk, survey it with each kind of track
-    (``kinds``: cards, features); track the room's tracking walk with each map."""
+    (``kinds``: cards, features); track the room's tracking walk with each map. With
+    ``exact_discs_px``, each detected card's disc centres are replaced by the true discs'
+    projections plus Gaussian noise of that many px (the detector's bias taken out)."""
     room = walk.walk(seed, n_frames)
     desc = f"{walk.name} room {seed}"
     features: FeatureObservations | None = None
@@ -204,11 +215,25 @@ def run_walk(walk: ExampleWalk, seed: int, n_frames: int, survey_detector: Detec
             survey_detector, room.frames(walk.room.camera), n_frames, desc)
     else:
         frames, truths, detect_s = detect_frames(survey_detector, room.frames(walk.room.camera), n_frames, desc)
+    if exact_discs_px is not None:
+        frames = exact_discs(frames, truths, room.scene, walk.room.camera, exact_discs_px, seed)
     should = [seen(t) for t in truths]
     found = sum(len(s & {t.id for t in f}) for s, f in zip(should, frames, strict=True))
     return [_survey_run(walk, room.scene, seed, kind, frames, truths, should, found,
                         detect_s + (track_s if kind == "features" else 0.0),
                         features if kind == "features" else None, tracking, floor) for kind in kinds]
+
+
+def exact_discs(frames: list[list[DetectedTarget]], truths: list[FrameTruth], scene: Scene, camera: Camera,
+                noise_px: float, seed: int) -> list[list[DetectedTarget]]:
+    """The detected cards with their disc centres replaced by the true discs' projections
+    in the frame plus Gaussian noise of ``noise_px``: what the survey would make of the
+    same walk if the disc centres had no bias. Detections of ids not in the room are
+    dropped."""
+    truth = {t.id: t.discs for t in scene.targets}
+    rng = np.random.default_rng([seed, 2])
+    return [[replace(t, discs=camera.project_map(truth[t.id], ft.pose) + rng.normal(0, noise_px, (4, 2)))
+             for t in detected if t.id in truth] for detected, ft in zip(frames, truths, strict=True)]
 
 
 def _survey_run(walk: ExampleWalk, scene: Scene, seed: int, kind: str, frames: list, truths: list[FrameTruth],  # type: ignore[type-arg]
@@ -427,6 +452,9 @@ def main() -> None:
                         help="survey with card tracks only, with feature tracks beside them, or both side by side")
     parser.add_argument("--no-floor", action="store_true", help="skip the floor (the survey's optimum) of each room")
     parser.add_argument("--quick", action="store_true", help="2 rooms, 150-frame walks, 40-frame tracking walks")
+    parser.add_argument("--exact-discs", type=float, metavar="PX", default=None,
+                        help="replace the detected disc centres by the true ones plus this much noise (px): "
+                             "the survey without the detector's bias")
     args = parser.parse_args()
     if args.quick:
         args.rooms, args.frames, args.tracking_frames = 2, 150, 40
@@ -452,7 +480,8 @@ def main() -> None:
                 t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, walk.room.camera, poses, rng),
                                                       len(poses), f"{walk.room.name} room {seed}: tracking walk")
                 tracking[key] = (t_frames, t_truths, scene)
-            for run in run_walk(walk, seed, args.frames, survey_detector, tracking[key], kinds, not args.no_floor):
+            for run in run_walk(walk, seed, args.frames, survey_detector, tracking[key], kinds, not args.no_floor,
+                                args.exact_discs):
                 runs.setdefault((walk.name, run.tracks), []).append(run)
                 # Each room's row as it comes, beside the progress bars: a long run tells early.
                 tqdm.write(room_row(walk, run), file=sys.stderr)
