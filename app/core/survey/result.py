@@ -23,7 +23,7 @@ from app.core.survey.features import feature_groups
 from app.core.survey.place import MIN_BASELINE_DEG
 from app.core.survey.scale import MetricScale
 from app.core.survey.state import SurveyError, SurveyState, Tracks, Views
-from app.core.survey.verify import focal_std_message, uncertain_cards
+from app.core.survey.verify import few_frames_lens_message, focal_std_message, uncertain_cards
 
 #: A target seen in fewer registered frames is flagged as weak.
 MIN_VIEWS = 3
@@ -278,7 +278,8 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     state.warnings += [w.message for w in advice]
     lens_std = info.intrinsics_std()
     for warning in (lens_warning(lens_std),
-                    None if lens_std is None else focal_std_message(rec.camera.fx, float(lens_std[0]))):
+                    None if lens_std is None else focal_std_message(rec.camera.fx, float(lens_std[0])),
+                    None if lens_std is None else few_frames_lens_message(rec.n_registered)):
         if warning is not None:
             state.warnings.append(warning)
     trajectory: list[Pose | None] = [None] * n_input_frames

@@ -15,7 +15,13 @@ from app.core.detection import DetectedTarget
 from app.core.geometry import similarity_from_points
 from app.core.survey import FeatureObservations, SurveyError, SurveyResult, survey
 from app.core.survey.advice import TargetViews, WarningKind, uncertainty_advice
-from app.core.survey.verify import UNCERTAIN_CARD_M, LensAgreement, uncertain_cards
+from app.core.survey.verify import (
+    MIN_LENS_FRAMES,
+    UNCERTAIN_CARD_M,
+    LensAgreement,
+    few_frames_lens_message,
+    uncertain_cards,
+)
 
 from .conftest import SURVEY_ROOM, wall_features, wall_walk
 
@@ -25,7 +31,7 @@ def _one_card_a_frame(frames: list[list[DetectedTarget]]) -> list[list[DetectedT
     return [[f[0]] if f else [] for f in frames]
 
 
-def _survey(frames: list[list[DetectedTarget]], features: FeatureObservations) -> SurveyResult:
+def _survey(frames: list[list[DetectedTarget]], features: FeatureObservations | None) -> SurveyResult:
     camera = SURVEY_ROOM.camera
     return survey(frames, camera.width, camera.height, SURVEY_ROOM.marker_size_m, features=features)
 
@@ -46,6 +52,21 @@ def test_lens_agreement() -> None:
     assert not wrong.agrees
     assert abs(wrong.difference - 0.262) < 0.001
     assert "26 %" in wrong.message() and "intrinsics" in wrong.message() and "film again" in wrong.message()
+
+
+def test_a_lens_fitted_from_few_frames_is_warned_about_whatever_its_reported_std() -> None:
+    assert few_frames_lens_message(MIN_LENS_FRAMES) is None
+    message = few_frames_lens_message(12)
+    assert message is not None and "only 12 registered frames" in message and "intrinsics" in message
+
+
+def test_a_survey_of_a_few_frames_warns_about_its_lens(synthetic_frames) -> None:  # type: ignore[no-untyped-def]
+    frames = synthetic_frames(0.05, 1)
+    short = [f if k < 16 else [] for k, f in enumerate(frames)]
+    result = _survey(short, None)
+    assert 10 <= result.n_registered < MIN_LENS_FRAMES and result.intrinsics_std is not None
+    assert any("the lens was calibrated from only" in w for w in result.warnings)
+    assert not any("the lens was calibrated from only" in w for w in _survey(frames, None).warnings)
 
 
 def test_an_uncertain_card_is_named_with_what_to_film() -> None:
