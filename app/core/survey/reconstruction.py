@@ -221,7 +221,8 @@ def grow(state: SurveyState, should_bundle: ShouldBundle = ShouldBundle(),
 def refine(state: SurveyState, should_fit_lens: ShouldFitLens = ShouldFitLens(), rounds: int = 5) -> BundleInfo:
     """Bundle-adjust the whole map and remove its outliers, until nothing changes (step 4).
 
-    Every view set aside while the map grew gets a new chance first. Each round: a bundle
+    Every view set aside while the map grew, in a frame carried by feature points, gets a
+    new chance first. Each round: a bundle
     adjustment with Huber's loss from ``HUBER_K`` robust spreads of
     the whitened errors (`prune.whitened_spread`: the video's own noise level); frames
     that failed before are registered and targets placed if they fit now; then every

@@ -15,6 +15,9 @@ evidence the drift does not bend:
   A card reached only through seconds of card-less frames is uncertain by centimetres,
   and is named, not silently kept.
 
+And one that needs no drift: a lens fitted from fewer than `MIN_LENS_FRAMES` registered
+frames is warned about whatever its reported uncertainty (`few_frames_lens_message`).
+
 numpy only; no I/O.
 """
 
