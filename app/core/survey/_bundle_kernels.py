@@ -19,6 +19,54 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)
+def _intrinsics_schur(j: int, Wj: np.ndarray, H: np.ndarray, g: np.ndarray, C_i: np.ndarray, g_p: np.ndarray,
+                      CW: np.ndarray) -> None:
+    """Point j's Schur complement on the intrinsics' rows (0 .. n_intr - 1 of ``H`` and
+    ``g``), in place; leaves C_j W_j^-1 in ``CW`` (n_intr, 3)."""
+    n_intr = C_i.shape[1]
+    for m in range(n_intr):
+        for t in range(3):
+            CW[m, t] = C_i[j, m, 0] * Wj[0, t] + C_i[j, m, 1] * Wj[1, t] + C_i[j, m, 2] * Wj[2, t]
+    for m in range(n_intr):
+        g[m] -= CW[m, 0] * g_p[j, 0] + CW[m, 1] * g_p[j, 1] + CW[m, 2] * g_p[j, 2]
+        for q in range(n_intr):
+            H[m, q] -= CW[m, 0] * C_i[j, q, 0] + CW[m, 1] * C_i[j, q, 1] + CW[m, 2] * C_i[j, q, 2]
+
+
+@njit(**_JIT)
+def _coupling(a: int, Wj: np.ndarray, F_c: np.ndarray, G: np.ndarray) -> None:
+    """G = F_a W_j^-1 (6, 3), in place."""
+    for i in range(6):
+        for t in range(3):
+            G[i, t] = F_c[a, i, 0] * Wj[0, t] + F_c[a, i, 1] * Wj[1, t] + F_c[a, i, 2] * Wj[2, t]
+
+
+@njit(**_JIT)
+def _point_terms(a: int, H: np.ndarray, g: np.ndarray, W: np.ndarray, g_p: np.ndarray, F_c: np.ndarray,
+                 C_i: np.ndarray, J_c: np.ndarray, J_i: np.ndarray, J_p: np.ndarray, w: np.ndarray, r: np.ndarray,
+                 op: np.ndarray) -> None:
+    """Feature observation a's terms that do not depend on where its camera is stored:
+    its camera-point coupling ``F_c[a]``, its point's block and gradient, and the
+    intrinsics' own rows (0 .. n_intr - 1 of ``H`` and ``g``) and point coupling."""
+    n_intr = J_i.shape[2]
+    wa = w[a]
+    j = op[a]
+    for i in range(6):
+        for t in range(3):
+            F_c[a, i, t] = wa * (J_c[a, 0, i] * J_p[a, 0, t] + J_c[a, 1, i] * J_p[a, 1, t])
+    for s in range(3):
+        g_p[j, s] += wa * (J_p[a, 0, s] * r[a, 0] + J_p[a, 1, s] * r[a, 1])
+        for t in range(3):
+            W[j, s, t] += wa * (J_p[a, 0, s] * J_p[a, 0, t] + J_p[a, 1, s] * J_p[a, 1, t])
+    for m in range(n_intr):
+        g[m] += wa * (J_i[a, 0, m] * r[a, 0] + J_i[a, 1, m] * r[a, 1])
+        for t in range(3):
+            C_i[j, m, t] += wa * (J_i[a, 0, m] * J_p[a, 0, t] + J_i[a, 1, m] * J_p[a, 1, t])
+        for q in range(n_intr):
+            H[m, q] += wa * (J_i[a, 0, m] * J_i[a, 0, q] + J_i[a, 1, m] * J_i[a, 1, q])
+
+
+@njit(**_JIT)
 def eliminate_points(H: np.ndarray, g: np.ndarray, W_inv: np.ndarray, F_c: np.ndarray, C_i: np.ndarray,
                      g_p: np.ndarray, by_point: np.ndarray, bounds: np.ndarray, col: np.ndarray) -> None:
     """Subtract every feature point's Schur complement from the reduced system, in place.
@@ -38,21 +86,13 @@ def eliminate_points(H: np.ndarray, g: np.ndarray, W_inv: np.ndarray, F_c: np.nd
     CW = np.empty((n_intr, 3))
     for j in range(W_inv.shape[0]):
         Wj = W_inv[j]
-        for m in range(n_intr):
-            for t in range(3):
-                CW[m, t] = C_i[j, m, 0] * Wj[0, t] + C_i[j, m, 1] * Wj[1, t] + C_i[j, m, 2] * Wj[2, t]
-        for m in range(n_intr):
-            g[m] -= CW[m, 0] * g_p[j, 0] + CW[m, 1] * g_p[j, 1] + CW[m, 2] * g_p[j, 2]
-            for q in range(n_intr):
-                H[m, q] -= CW[m, 0] * C_i[j, q, 0] + CW[m, 1] * C_i[j, q, 1] + CW[m, 2] * C_i[j, q, 2]
+        _intrinsics_schur(j, Wj, H, g, C_i, g_p, CW)
         for ia in range(bounds[j], bounds[j + 1]):
             a = by_point[ia]
             ca = col[a]
             if ca < 0:
                 continue
-            for i in range(6):
-                for t in range(3):
-                    G[i, t] = F_c[a, i, 0] * Wj[0, t] + F_c[a, i, 1] * Wj[1, t] + F_c[a, i, 2] * Wj[2, t]
+            _coupling(a, Wj, F_c, G)
             for i in range(6):
                 g[ca + i] -= G[i, 0] * g_p[j, 0] + G[i, 1] * g_p[j, 1] + G[i, 2] * g_p[j, 2]
                 for m in range(n_intr):
@@ -85,22 +125,9 @@ def add_observations(H: np.ndarray, g: np.ndarray, W: np.ndarray, g_p: np.ndarra
     """
     n_intr = J_i.shape[2]
     for a in range(J_c.shape[0]):
+        _point_terms(a, H, g, W, g_p, F_c, C_i, J_c, J_i, J_p, w, r, op)
         wa = w[a]
-        j = op[a]
         c = col[a]
-        for i in range(6):
-            for t in range(3):
-                F_c[a, i, t] = wa * (J_c[a, 0, i] * J_p[a, 0, t] + J_c[a, 1, i] * J_p[a, 1, t])
-        for s in range(3):
-            g_p[j, s] += wa * (J_p[a, 0, s] * r[a, 0] + J_p[a, 1, s] * r[a, 1])
-            for t in range(3):
-                W[j, s, t] += wa * (J_p[a, 0, s] * J_p[a, 0, t] + J_p[a, 1, s] * J_p[a, 1, t])
-        for m in range(n_intr):
-            g[m] += wa * (J_i[a, 0, m] * r[a, 0] + J_i[a, 1, m] * r[a, 1])
-            for t in range(3):
-                C_i[j, m, t] += wa * (J_i[a, 0, m] * J_p[a, 0, t] + J_i[a, 1, m] * J_p[a, 1, t])
-            for q in range(n_intr):
-                H[m, q] += wa * (J_i[a, 0, m] * J_i[a, 0, q] + J_i[a, 1, m] * J_i[a, 1, q])
         if c < 0:
             continue
         for i in range(6):
@@ -193,22 +220,9 @@ def add_observations_sparse(Hy: np.ndarray, blocks: np.ndarray, indptr: np.ndarr
     n_intr = J_i.shape[2]
     n_y = Hy.shape[1]
     for a in range(J_c.shape[0]):
+        _point_terms(a, Hy, g, W, g_p, F_c, C_i, J_c, J_i, J_p, w, r, op)
         wa = w[a]
-        j = op[a]
         f = fcam[a]
-        for i in range(6):
-            for t in range(3):
-                F_c[a, i, t] = wa * (J_c[a, 0, i] * J_p[a, 0, t] + J_c[a, 1, i] * J_p[a, 1, t])
-        for s in range(3):
-            g_p[j, s] += wa * (J_p[a, 0, s] * r[a, 0] + J_p[a, 1, s] * r[a, 1])
-            for t in range(3):
-                W[j, s, t] += wa * (J_p[a, 0, s] * J_p[a, 0, t] + J_p[a, 1, s] * J_p[a, 1, t])
-        for m in range(n_intr):
-            g[m] += wa * (J_i[a, 0, m] * r[a, 0] + J_i[a, 1, m] * r[a, 1])
-            for t in range(3):
-                C_i[j, m, t] += wa * (J_i[a, 0, m] * J_p[a, 0, t] + J_i[a, 1, m] * J_p[a, 1, t])
-            for q in range(n_intr):
-                Hy[m, q] += wa * (J_i[a, 0, m] * J_i[a, 0, q] + J_i[a, 1, m] * J_i[a, 1, q])
         if f < 0:
             continue
         c = n_y + 6 * f
@@ -233,22 +247,14 @@ def eliminate_points_sparse(Hy: np.ndarray, blocks: np.ndarray, indptr: np.ndarr
     CW = np.empty((n_intr, 3))
     for j in range(W_inv.shape[0]):
         Wj = W_inv[j]
-        for m in range(n_intr):
-            for t in range(3):
-                CW[m, t] = C_i[j, m, 0] * Wj[0, t] + C_i[j, m, 1] * Wj[1, t] + C_i[j, m, 2] * Wj[2, t]
-        for m in range(n_intr):
-            g[m] -= CW[m, 0] * g_p[j, 0] + CW[m, 1] * g_p[j, 1] + CW[m, 2] * g_p[j, 2]
-            for q in range(n_intr):
-                Hy[m, q] -= CW[m, 0] * C_i[j, q, 0] + CW[m, 1] * C_i[j, q, 1] + CW[m, 2] * C_i[j, q, 2]
+        _intrinsics_schur(j, Wj, Hy, g, C_i, g_p, CW)
         for ia in range(bounds[j], bounds[j + 1]):
             a = by_point[ia]
             fa = fcam[a]
             if fa < 0:
                 continue
             ca = n_y + 6 * fa
-            for i in range(6):
-                for t in range(3):
-                    G[i, t] = F_c[a, i, 0] * Wj[0, t] + F_c[a, i, 1] * Wj[1, t] + F_c[a, i, 2] * Wj[2, t]
+            _coupling(a, Wj, F_c, G)
             for i in range(6):
                 g[ca + i] -= G[i, 0] * g_p[j, 0] + G[i, 1] * g_p[j, 1] + G[i, 2] * g_p[j, 2]
                 for m in range(n_intr):
