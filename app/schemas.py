@@ -100,6 +100,7 @@ _EXAMPLE_MAP: dict[str, Any] = {
 }
 _EXAMPLE_DETECTED: dict[str, Any] = {
     "id": 7, "discs": [[297.41, 170.36], [365.12, 168.21], [365.48, 241.03], [297.02, 241.39]], "score": 0.94,
+    "read_margin": 412.6,
 }
 _EXAMPLE_R = [[0.9776, -0.0381, -0.207], [0.0214, 0.9964, -0.0825], [0.2094, 0.0762, 0.9749]]
 _EXAMPLE_POSE: dict[str, Any] = {
@@ -631,6 +632,11 @@ class DetectedTargetOut(BaseModel):
         description="Disc centres [u, v] in pixels: top-left, top-right, bottom-right, bottom-left of the card."
     )
     score: float = Field(description="Confidence 0..1: how clearly the target's weakest check passed.")
+    read_margin: float | None = Field(None, description=(
+        "How clearly the code was read: how much worse the best other printed pattern (another code, this "
+        "code turned, or a pattern one cell from a code) fits the card's pixels than this code, in units of "
+        "the image noise (twice the log-likelihood ratio). Codes are accepted from 12 (or from any margin when "
+        "the quick nine-sample read names the same code); a few hundred is a clear read. None when not known."))
 
 
 class DetectResponse(BaseModel):

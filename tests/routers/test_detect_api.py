@@ -37,6 +37,8 @@ def _check_found(body: dict, truth: scenes.FrameTruth) -> None:
         assert target.id in found, (target.id, list(found))
         assert np.abs(found[target.id] - target.discs_px).max() < 2.0
     assert set(found) <= {t.id for t in truth.targets}
+    # every target says how clearly its code was read
+    assert all(isinstance(t["read_margin"], float) and t["read_margin"] >= 0 for t in body["targets"])
 
 
 @pytest.mark.parametrize("ext,content_type", [(".png", "image/png"), (".jpg", "image/jpeg")])

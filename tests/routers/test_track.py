@@ -50,6 +50,7 @@ def test_hello_frames_and_poses_in_order(client: TestClient, world: World, envir
             reply = ws.receive_json()
             assert reply["type"] == "frame" and reply["seq"] == seq and reply["dropped"] == 0
             assert len(reply["targets"]) == 3
+            assert all(t["read_margin"] >= 0 for t in reply["targets"])  # how clearly each code was read
             assert reply["pose"]["n_targets"] == 3 and reply["pose"]["n_points"] == 12
             assert np.linalg.norm(np.array(reply["pose"]["position"]) - pose.position) < 0.01
             assert set(reply["timing_ms"]) >= {"decode", "detect", "pose", "total"}

@@ -1,4 +1,4 @@
-"""Identification: which card is it, and which of its discs is which?
+"""Identification by nine samples: which card is it, and which of its discs is which?
 
 The code is read through the refined homography (the mean of each code cell's samples,
 `verification._measure`), normalised by the card's own black (discs) and white levels,
@@ -6,11 +6,13 @@ and fitted by every code of the family in all four rotations, each as it reads t
 a few amounts of blur (a far card's 2 px cells are never read as clean black and white,
 `_blurred_templates`), and a card whose white is clipped also through the clip
 (`CODE_SATURATION`); a read whose best fit is poor, or that another code or rotation
-fits nearly as well, is refused (`_decode`). A sound card the isotropic templates
-cannot read is tried again against templates smeared by motion blur
-(`_decode_motion`). The rotation of the best fit gives the printed order of the discs
-(0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left, the card upright as its code
-defines: `_PRINTED_ORDER`).
+fits nearly as well, is refused (`_decode`). The rotation of the best fit gives the
+printed order of the discs (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left, the
+card upright as its code defines: `_PRINTED_ORDER`).
+
+This quick read is what the detector checks the whole-card read (`code_reader`) against:
+where the two name the same code the card is settled cheaply, and a whole-card read the
+nine samples contradict is refused.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from app.core.detection._frame import Pyramid, as_gray
 from app.core.detection.verification import _measure, _plan
-from app.core.geometry import homographies, jacobians
+from app.core.geometry import homographies
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, DISC_CENTRES, DISC_RADIUS, get_family
 
 __all__ = [
@@ -31,13 +33,6 @@ __all__ = [
     "CODE_FIT_MAX",
     "CODE_GAP_MIN",
     "CODE_SATURATION",
-    "MOTION_ANGLES",
-    "MOTION_FIT_TIGHT",
-    "MOTION_GAP_TIGHT",
-    "MOTION_ISO_CELLS",
-    "MOTION_LENGTHS_PX",
-    "MOTION_MAX_READS",
-    "MOTION_STEPS",
     "CodeMatch",
     "decode_cells",
     "identify",
@@ -64,32 +59,6 @@ CODE_GAP_MIN = 0.15
 #: a far and two blurred cards lost when every read had them).
 CODE_SATURATION = (1.0, 1.5, 2.5)
 CLIPPED_WHITE_GREY = 245.0
-
-#: Motion blur: a card the isotropic templates cannot read is tried again against every
-#: code as it reads through a straight smear of `MOTION_LENGTHS_PX` image pixels in each
-#: of `MOTION_ANGLES` directions (a line kernel, plus `MOTION_ISO_CELLS` of isotropic blur), mapped
-#: onto the card by the homography's local affine map at the code. A hand-held camera
-#: smears a small card's 2-4 px cells by one or two cell widths, in one direction, which
-#: the isotropic templates cannot follow (bench: 6 of 8 blur misses were such reads). The
-#: acceptance rule is the same (`CODE_FIT_MAX`, `CODE_GAP_MIN`), the gap taken over
-#: every blur, so a smear that leaves two codes alike is still refused; or a near-exact
-#: fit with a smaller margin (`MOTION_FIT_TIGHT`).
-MOTION_LENGTHS_PX = (3.0, 5.0, 7.0, 9.0, 11.0, 13.0)
-MOTION_ANGLES = 12
-MOTION_STEPS = 9  # samples along the smear
-MOTION_ISO_CELLS = 0.0  # isotropic blur (cell widths) added to the smear (0: none)
-#: At most this many reads per frame go through the (~2.5 ms each) motion fallback.
-MOTION_MAX_READS = 4
-#: A smeared read is also accepted when a smeared template fits it almost exactly
-#: (summed squared error <= `MOTION_FIT_TIGHT`) and every other (code, rotation) fits
-#: worse by `MOTION_GAP_TIGHT`: a smear along a code's rows can leave two codes only
-#: ~0.1 apart while the read matches one of them to 0.01. Sweep (77k rendered cards of
-#: every id, 36-90 px, random perspective, smears of 2-16 px at any angle, extra blur,
-#: exposure 0.3-1, noise; the motion fallback reached by 9.7k): this rule adds 220
-#: reads, none wrong; of the 279 wrong best reads none has fit <= 0.05 with a margin
-#: above 0.04, or a margin >= 0.05 with fit below 0.06.
-MOTION_FIT_TIGHT = 0.02
-MOTION_GAP_TIGHT = 0.10
 
 #: `_PRINTED_ORDER[s][j]`: the quadrilateral vertex (j - s) % 4 that is card disc j.
 _PRINTED_ORDER = (np.arange(4)[None, :] - np.arange(4)[:, None]) % 4
@@ -295,77 +264,3 @@ def _decode(cells: np.ndarray, family: str, white: np.ndarray | None = None
     gap = sse.min(axis=1) - fit
     ok = np.isfinite(fit) & (fit <= CODE_FIT_MAX) & (gap >= CODE_GAP_MIN)
     return ok, ids[best], shifts[best], fit, gap
-
-
-@functools.cache
-def _motion_offsets() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit smear kernels in image pixels: (O, K, 2) offsets per pixel of length for
-    each (length, angle) option, their weights (K,), and the lengths (O,) and the
-    isotropic part (K, 2) in cell widths, so ``offset = length * unit @ Jinv.T + iso``."""
-    t = np.linspace(-0.5, 0.5, MOTION_STEPS)
-    angles = np.arange(MOTION_ANGLES) * (np.pi / MOTION_ANGLES)
-    if MOTION_ISO_CELLS > 0:
-        iso = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], np.float64) * MOTION_ISO_CELLS
-        iso_w = np.array([0.4, 0.15, 0.15, 0.15, 0.15])
-    else:
-        iso, iso_w = np.zeros((1, 2)), np.ones(1)
-    lengths = np.repeat(np.asarray(MOTION_LENGTHS_PX, np.float64), angles.size)
-    ang = np.tile(angles, len(MOTION_LENGTHS_PX))
-    d = np.stack([np.cos(ang), np.sin(ang)], 1) * lengths[:, None]  # (O, 2) image px
-    line = t[None, :, None] * d[:, None, :]  # (O, L, 2)
-    unit = np.repeat(line, iso.shape[0], axis=1)  # (O, K, 2), K = L * 5
-    iso_k = np.tile(iso, (t.size, 1))  # (K, 2)
-    w = np.repeat(np.full(t.size, 1.0 / t.size), iso.shape[0]) * np.tile(iso_w, t.size)
-    return unit, iso_k, w
-
-
-def _decode_motion(cells: np.ndarray, hs: np.ndarray, family: str
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`_decode` of cells (R, n*n) against templates smeared by motion blur (see
-    `MOTION_LENGTHS_PX`), for the cards of homographies `hs` (R, 3, 3)."""
-    tmpl, ids, shifts = _templates(family)
-    n = get_family(family).cells
-    plan = _plan(n)
-    step = CODE_SIZE / n
-    subs = plan.points[plan.cells]  # (n*n, S, 2)
-    n2, n_s = subs.shape[:2]
-    unit, iso, w = _motion_offsets()
-    n_o, n_k = unit.shape[:2]
-    r = cells.shape[0]
-    out = [np.zeros(r, bool), np.zeros(r, np.intp), np.zeros(r, np.intp), np.full(r, np.inf), np.zeros(r)]
-    jac = jacobians(hs, np.array([[CODE_ORIGIN + 0.5 * CODE_SIZE] * 2]))[:, 0]  # (R, 2, 2)
-    for q in range(r):
-        try:
-            jinv = np.linalg.inv(jac[q])
-        except np.linalg.LinAlgError:
-            continue
-        off = unit @ jinv.T + iso[None] * step  # (O, K, 2) card units
-        p = subs[None, :, :, None, :] + off[:, None, None, :, :]  # (O, n2, S, K, 2)
-        col = np.floor((p[..., 0] - CODE_ORIGIN) / step).astype(np.intp)
-        row = np.floor((p[..., 1] - CODE_ORIGIN) / step).astype(np.intp)
-        inside = (col >= 0) & (col < n) & (row >= 0) & (row < n)
-        disc = np.zeros(p.shape[:-1], bool)
-        for c in DISC_CENTRES:
-            dx, dy = p[..., 0] - c[0], p[..., 1] - c[1]
-            disc |= dx * dx + dy * dy <= DISC_RADIUS**2
-        # where each sub-sample's kernel point lands: code cell 0..n2-1, white card n2,
-        # a disc n2 + 1 (black: contributes 0)
-        target = np.where(disc, n2 + 1, np.where(inside, row * n + col, n2))
-        o_idx = np.arange(n_o)[:, None, None, None]
-        c_idx = np.arange(n2)[None, :, None, None]
-        flat = (o_idx * n2 + c_idx) * (n2 + 2) + target
-        weights = np.broadcast_to(w / n_s, flat.shape)
-        a = np.bincount(flat.ravel(), weights.ravel(), minlength=n_o * n2 * (n2 + 2)).reshape(n_o, n2, n2 + 2)
-        a = a.astype(np.float32)
-        res = a[..., :n2] @ tmpl.T  # (O, n2, T) predicted reads
-        res += (a[..., n2] - cells[q][None, :])[..., None]  # minus the read: residuals
-        np.multiply(res, res, out=res)
-        sse = res.sum(axis=1).min(axis=0)  # (T,) best smear per template
-        best = int(np.argmin(sse))
-        fit = sse[best]
-        sse[best] = np.inf
-        margin = sse.min() - fit
-        out[0][q] = ((fit <= CODE_FIT_MAX and margin >= CODE_GAP_MIN)
-                     or (fit <= MOTION_FIT_TIGHT and margin >= MOTION_GAP_TIGHT))
-        out[1][q], out[2][q], out[3][q], out[4][q] = ids[best], shifts[best], fit, sse.min() - fit
-    return tuple(out)  # type: ignore[return-value]

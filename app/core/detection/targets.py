@@ -6,8 +6,9 @@ learned disc stage): `assemble_targets` runs the stages, each in its own module.
 2. Verification (`verification`): each quadrilateral's card sampled through its
    homography and held to photometric checks, loosely before refinement.
 3. Refinement (`refinement`): subpixel disc centres, then every check strictly.
-4. Identification (`identification`): the code read and matched in all four
-   rotations, which gives the printed order of the discs.
+4. Identification: the code read from the whole card (`code_reader`: every pixel against
+   the rendered image of every code in all four rotations), checked against the quick
+   nine-sample read (`identification`); the rotation gives the printed order of the discs.
 5. Completion (`completion`): cards of which only three discs have candidates,
    proposed from those three and judged like the others.
 
@@ -29,13 +30,8 @@ import numpy as np
 from app.core.detection._frame import Pyramid, as_gray
 from app.core.detection.completion import _MAX_SHIFT, _three_disc_cards
 from app.core.detection.grouping import _Graph, _group
-from app.core.detection.identification import (
-    CODE_GAP_MIN,
-    MOTION_MAX_READS,
-    _PRINTED_ORDER,
-    _decode,
-    _decode_motion,
-)
+from app.core.detection.code_reader import MIN_MARGIN, SMEARED_MAX_READS, read_cards
+from app.core.detection.identification import CLIPPED_WHITE_GREY, _PRINTED_ORDER, _decode
 from app.core.detection.refinement import MAX_REFINE_SHIFT, refine_centres
 from app.core.detection.verification import (
     MAX_DISC_LEVEL,
@@ -76,9 +72,13 @@ class DetectedTarget:
     disc_radii : ndarray, shape (4,)
         Imaged disc radii in pixels (sqrt of the disc's dark area / pi).
     code_gap : float
-        The code's margin: how much worse the best other code (or rotation) fits the
-        read than its own (`identification.CodeMatch.gap`: at least `CODE_GAP_MIN`, or
-        `MOTION_GAP_TIGHT` for a near-exact smeared read); NaN when not known.
+        The nine-sample read's margin: how much worse the best other code (or rotation)
+        fits the nine cell samples than this one (`identification.CodeMatch.gap`; below
+        `CODE_GAP_MIN` when only the whole card was read); NaN when not known.
+    read_margin : float
+        The whole-card read's margin (`code_reader.CardReads.margin`): how much worse the
+        best other printed pattern fits the card's pixels than this code, in units of the
+        image noise (twice the log-likelihood ratio); NaN when not known.
     """
 
     id: int
@@ -86,6 +86,7 @@ class DetectedTarget:
     score: float
     disc_radii: np.ndarray = field(default_factory=lambda: np.zeros(4))
     code_gap: float = float("nan")
+    read_margin: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         """The target as JSON-able values.
@@ -93,12 +94,15 @@ class DetectedTarget:
         Returns
         -------
         dict
-            ``id``, ``discs`` (four ``[u, v]`` pairs) and ``score``.
+            ``id``, ``discs`` (four ``[u, v]`` pairs), ``score`` and ``read_margin``
+            (None when not known).
         """
+        margin = float(self.read_margin)
         return {
             "id": int(self.id),
             "discs": [[float(u), float(v)] for u, v in np.asarray(self.discs, np.float64)],
             "score": float(self.score),
+            "read_margin": round(margin, 1) if np.isfinite(margin) else None,
         }
 
 
@@ -146,7 +150,7 @@ def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEF
     used_ids: set[int] = set()
     used_cands: set[int] = set()
     judged: list[set[int]] = []
-    motion_left = MOTION_MAX_READS
+    motion_left = SMEARED_MAX_READS
     if quads.shape[0]:
         res = _judge(gray, pyr, cand[quads, :2], fam.cells, family, motion_left, clock)
         if res is not None:
@@ -192,8 +196,9 @@ class _Judged:
     """What `_judge` found: the rows `keep` of the quadrilaterals that passed the coarse
     checks and were refined, and for those: whether each is a sound card (`ok`), its
     final measurements, whether its code was read (`decoded`) and as what (`ids`,
-    `shifts`, `gap`), its refined disc centres and radii (layout orientation); and how
-    many reads went through the motion fallback."""
+    `shifts`, the nine-sample read's `gap` and the whole card's `margin`), its refined
+    disc centres and radii (layout orientation); and how many reads were tried against
+    smeared cards."""
 
     keep: np.ndarray
     ok: np.ndarray
@@ -202,6 +207,7 @@ class _Judged:
     ids: np.ndarray
     shifts: np.ndarray
     gap: np.ndarray
+    margin: np.ndarray
     refined: np.ndarray
     radii: np.ndarray
     motion_reads: int
@@ -211,7 +217,7 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
            clock: _Clock | None = None, max_shift: np.ndarray | float = MAX_REFINE_SHIFT) -> _Judged | None:
     """Verify, refine and identify disc quadrilaterals `pts` (P, 4, 2) (layout
     orientation): None if none passes the coarse checks. `n`: the family's code has
-    n x n cells; `motion_reads`: at most this many reads through the motion fallback;
+    n x n cells; `motion_reads`: at most this many cards tried against smeared cards;
     `max_shift`: how far each disc may move in refinement, in predicted disc radii
     (scalar or (4,))."""
     hs = homographies(pts)
@@ -236,7 +242,7 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
         clock.lap("refine")
     hs = homographies(refined)
     m = _measure(pyr, hs, n)
-    decoded, ids, shifts, fit, gap = _decode(m.cells, family, m.white)
+    decoded, ids, shifts, _, gap = _decode(m.cells, family, m.white)
     ok = m.passed() & np.isfinite(refined).all(axis=(1, 2))
     # With the centres refined, every sample inside every disc must be dark (a disc
     # half hidden by another card, or a blob that is no disc, has light ones).
@@ -253,13 +259,19 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
     # area, though, disagrees with the size the homography predicts for it. Blur and
     # exposure scale all four alike, so only the spread of the ratios is tested.
     ok &= _radius_spread(pred, radii) <= MAX_RADIUS_SPREAD
-    # A sound card whose code the isotropic templates cannot read: motion blur?
-    again = np.flatnonzero(ok & ~decoded)[:max(motion_reads, 0)]
-    if again.size:
-        d2, i2, s2, f2, g2 = _decode_motion(m.cells[again], hs[again], family)
-        decoded[again], ids[again], shifts[again], fit[again], gap[again] = d2, i2, s2, f2, g2
-    return _Judged(keep=keep, ok=ok, measures=m, decoded=decoded, ids=ids, shifts=shifts, gap=gap, refined=refined,
-                   radii=radii, motion_reads=int(again.size))
+    # Every sound card is read from its whole image (`code_reader.read_cards`), the
+    # nine-sample read's code known to it: a read the nine samples contradict falls.
+    sound = np.flatnonzero(ok)
+    known = np.where(decoded[sound, None], np.stack([ids[sound], shifts[sound]], axis=1), -1)
+    reads = read_cards(pyr, hs[sound], family, clipped=m.white[sound] >= CLIPPED_WHITE_GREY, known=known,
+                       smeared=max(motion_reads, 0))
+    decoded = np.zeros_like(decoded)
+    decoded[sound] = reads.ok
+    ids[sound], shifts[sound] = reads.ids, reads.shifts
+    margin = np.full(ok.shape, np.nan)
+    margin[sound] = reads.margin
+    return _Judged(keep=keep, ok=ok, measures=m, decoded=decoded, ids=ids, shifts=shifts, gap=gap, margin=margin,
+                   refined=refined, radii=radii, motion_reads=int(reads.smeared.sum()))
 
 
 def _complete(gray: np.ndarray, pyr: Pyramid, g: _Graph, found: list[DetectedTarget], used_ids: set[int],
@@ -289,7 +301,7 @@ def _select(res: _Judged, quads: np.ndarray, used_ids: set[int], used_cands: set
     rows = np.flatnonzero(res.ok & res.decoded)
     if rows.size == 0:
         return []
-    score = _score(res.measures, rows, res.gap)
+    score = _score(res.measures, rows, res.margin)
     order = rows[np.argsort(-score, kind="stable")]
     score_of = dict(zip(rows.tolist(), score.tolist(), strict=True))
     out: list[DetectedTarget] = []
@@ -302,14 +314,15 @@ def _select(res: _Judged, quads: np.ndarray, used_ids: set[int], used_cands: set
         used_cands |= members
         printed = _PRINTED_ORDER[res.shifts[r]]
         out.append(DetectedTarget(id=tid, discs=res.refined[r][printed], score=float(score_of[r]),
-                                  disc_radii=res.radii[r][printed], code_gap=float(res.gap[r])))
+                                  disc_radii=res.radii[r][printed], code_gap=float(res.gap[r]),
+                                  read_margin=float(res.margin[r])))
     return out
 
 
-def _score(m: _Measures, rows: np.ndarray, gap: np.ndarray) -> np.ndarray:
+def _score(m: _Measures, rows: np.ndarray, margin: np.ndarray) -> np.ndarray:
     """Confidence 0..1 from how clearly each check passed (the weakest one)."""
     parts = np.array([
-        gap[rows] / (4 * CODE_GAP_MIN) if gap.size else np.ones(rows.size),
+        margin[rows] / (4 * MIN_MARGIN) if margin.size else np.ones(rows.size),
         (MAX_DISC_LEVEL + 0.15 - m.disc_level[rows]) / (MAX_DISC_LEVEL + 0.15),
         (m.white_low[rows] - MIN_WHITE_LOW + 0.1) / (1.1 - MIN_WHITE_LOW),
         (m.gap_low[rows] - MIN_GAP_LEVEL + 0.1) / (1.1 - MIN_GAP_LEVEL),

@@ -47,9 +47,9 @@ def test_fitted_centres_are_closer_to_the_truth_than_centroids(walk: list, detec
     assert len(f) >= 100
     rms_c, rms_f = float(np.sqrt(np.mean(c**2))), float(np.sqrt(np.mean(f**2)))
     # the fit removes at least a quarter of the centroids' error and stays near 0.01 px
-    # on these discs of 3-7 px
+    # on these discs of 3-7 px (0.014 with the blurred cards only the whole-card reader reads)
     assert rms_f < 0.75 * rms_c, (rms_f, rms_c)
-    assert rms_f < 0.0125
+    assert rms_f < 0.015
 
 
 def test_big_discs_and_discs_at_the_border_keep_the_detectors_centres(walk: list) -> None:

@@ -1,0 +1,506 @@
+"""Whole-card code reading: the card's image compared with the rendered image of every code.
+
+The nine-sample reader (`identification`) reads the mean of a few samples in each code
+cell. On a small card (discs of 3-5 px, code cells of 1.2-2 px) those samples straddle
+the cells' edges and carry little signal. Here every pixel of the card takes part:
+
+    I(p) = a + b * u_c(p) + g * beyond(p)
+
+where u_c is the printed card of code c (white 1, ink 0) integrated over pixel p's
+footprint and blurred by a point-spread function k, `beyond` the part of p's footprint
+off the card (the unknown background, blurred the same way), and a, b, g are fitted by
+least squares for every code, rotation and blur together. Because the model is linear in
+a, b, g, the fit of every code comes from one small Gram matrix of the rendered channels
+(one per code cell, the white card, the background and a constant) per blur, so all
+codes and rotations cost about what one does.
+
+The blur is not known in advance. It is chosen from a set of point-spread functions
+(`PSF_SIGMAS_PX` isotropic, `MOTION_LENGTHS_PX` x `MOTION_ANGLES` smears) by the same fit:
+the four discs and the white around them, which every code shares, pin it down. A
+caller that knows the blur (a bench with the simulator's truth) passes it instead.
+
+A read is judged by its margin: the difference of the summed squared residuals of the
+best other (code, rotation) and of the best, in units of the best fit's residual
+variance (twice the log-likelihood ratio under Gaussian noise of that variance), and
+by its residual relative to the card's contrast.
+
+Pure numpy/OpenCV; no I/O.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.special import ndtr
+
+from app.core.detection._frame import Pyramid
+from app.core.geometry import jacobians
+from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS, get_family
+
+__all__ = [
+    "MAX_FIT_PER_MARGIN",
+    "MAX_SIDE_PX",
+    "MIN_MARGIN",
+    "MOTION_ANGLES",
+    "MOTION_LENGTHS_PX",
+    "MOTION_SIGMA_PX",
+    "PSF_SIGMAS_PX",
+    "SMEARED_MAX_READS",
+    "CardReads",
+    "gaussian_psf",
+    "isotropic_psfs",
+    "psf_set",
+    "read_cards",
+    "smear_psf",
+]
+
+#: Isotropic point-spread functions tried (Gaussian sigma, pixels of the level read; the
+#: pixel's own footprint comes on top): optics, defocus, the pyramid's smoothing.
+PSF_SIGMAS_PX = (0.0, 0.35, 0.55, 0.75, 1.0, 1.3, 1.7)
+#: Straight smears tried (length in pixels, each at `MOTION_ANGLES` directions over a
+#: half turn), each with a little isotropic blur (`MOTION_SIGMA_PX`).
+MOTION_LENGTHS_PX = (2.5, 4.0, 6.0, 8.5, 11.5)
+MOTION_ANGLES = 8
+MOTION_SIGMA_PX = 0.35
+#: At most this many cards of a frame are tried against the smears (about 1 ms each).
+SMEARED_MAX_READS = 4
+#: A card larger than this (side, pixels) is read on the pyramid level that brings it
+#: below: its cells are big enough there, and the fit stays small.
+MAX_SIDE_PX = 32.0
+#: Pixels are read whose centres lie this far inside the card's edge (card units): the
+#: background beyond the edge is modelled only as one level.
+REGION_MARGIN = 0.06
+#: A pixel of a clipped card at this grey level or above is saturated.
+SATURATED_GREY = 254.0
+#: Sub-samples per pixel side for the pixel's footprint.
+SUPERSAMPLE = 3
+#: Acceptance: the margin (see the module's docstring) at least `MIN_MARGIN`, and the best
+#: code's misfit (`CardReads.fit`) at most `MAX_FIT_PER_MARGIN` times the margin: the card
+#: as read must lie nearer its code than the code lies to the next pattern. A printed card
+#: keeps the ratio under 1.7 (bench_code_read, unclipped cards through their true discs);
+#: dice, text and checkerboards in the code area go far above it.
+MIN_MARGIN = 12.0
+MAX_FIT_PER_MARGIN = 2.0
+
+
+@dataclass(frozen=True)
+class CardReads:
+    """Whole-card reads of P cards (`read_cards`).
+
+    Parameters
+    ----------
+    ok : ndarray of bool, shape (P,)
+        Read and accepted.
+    ids : ndarray of int, shape (P,)
+        The best code's id (meaningful where `ok`).
+    shifts : ndarray of int, shape (P,)
+        Its vertex shift: vertex m of the quadrilateral read is the card's disc
+        (m + shift) % 4 in printed order.
+    margin : ndarray, shape (P,)
+        How much worse the best other (code, rotation) fits, in units of the best fit's
+        residual variance; 0 where the card could not be read.
+    fit : ndarray, shape (P,)
+        How much worse the best code fits than a card whose cells may take any grey
+        level, in the same units: small for a printed code, large for a pattern that is
+        no code; inf where not read.
+    psf : ndarray of int, shape (P,)
+        Index of the best fit's point-spread function in the set used; -1 where not read.
+    smeared : ndarray of bool, shape (P,)
+        Tried against the smears (`psf_set`) as well.
+    """
+
+    ok: np.ndarray
+    ids: np.ndarray
+    shifts: np.ndarray
+    margin: np.ndarray
+    fit: np.ndarray
+    psf: np.ndarray
+    smeared: np.ndarray
+
+
+def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndarray] | None = None,
+               clipped: np.ndarray | None = None, known: np.ndarray | None = None,
+               smeared: int | None = None) -> CardReads:
+    """Read the codes of cards by fitting every code's rendered image to every pixel.
+
+    A read is accepted on its margin and misfit (`MIN_MARGIN`, `MAX_FIT_PER_MARGIN`), and
+    never when `known` names another code. By default a card is fitted first with the
+    isotropic point-spread functions (`isotropic_psfs`) alone, which settles it when its
+    best code is the one `known` names and the read is clear; any other card is fitted
+    with the smears as well (`psf_set`): an isotropic fit of a smeared small card can
+    name a wrong code clearly.
+
+    Parameters
+    ----------
+    pyr : Pyramid
+        The frame's pyramid.
+    hs : ndarray, shape (P, 3, 3)
+        Each card's homography, card units to full-resolution pixels, with vertex 0 at
+        card disc 0 (the quadrilateral's order, as `identification` reads it).
+    family : str
+        The code family.
+    psfs : sequence of ndarray, optional
+        The point-spread functions to fit with instead (odd-sized, summing to 1, in
+        pixels of the level each card is read on; a bench that knows the blur): one
+        stage, accepted on margin and misfit.
+    clipped : ndarray of bool, shape (P,), optional
+        Cards whose white may clip at the sensor's full scale: a saturated pixel only
+        says the card is at least that bright there.
+    known : ndarray of int, shape (P, 2), optional
+        Each card's (id, vertex shift) from another read (the nine samples,
+        `identification`), or -1 where none.
+    smeared : int, optional
+        At most this many cards are fitted with the smears (None: every one that needs
+        it); the others stay unread.
+
+    Returns
+    -------
+    CardReads
+    """
+    hs = np.asarray(hs, np.float64).reshape(-1, 3, 3)
+    p = hs.shape[0]
+    out = CardReads(ok=np.zeros(p, bool), ids=np.zeros(p, np.intp), shifts=np.zeros(p, np.intp),
+                    margin=np.zeros(p), fit=np.full(p, np.inf), psf=np.full(p, -1, np.intp),
+                    smeared=np.zeros(p, bool))
+    if p == 0:
+        return out
+    stages = [list(psfs)] if psfs is not None else [list(isotropic_psfs()), list(psf_set())]
+    tmpl, ids, shifts = _patterns(family)
+    n2 = get_family(family).cells ** 2
+    clipped = np.zeros(p, bool) if clipped is None else np.asarray(clipped, bool)
+    known = np.full((p, 2), -1, np.intp) if known is None else np.asarray(known, np.intp).reshape(p, 2)
+    left = p if smeared is None else smeared
+    for q in range(p):
+        for stage, kernels in enumerate(stages):
+            last = stage == len(stages) - 1
+            if stage > 0:
+                if left <= 0:
+                    break
+                left -= 1
+                out.smeared[q] = True
+            patch = _card_patch(pyr, hs[q], n2, max(k.shape[0] for k in kernels) // 2, bool(clipped[q]))
+            if patch is None:
+                break
+            fitted = _fit_codes(patch, kernels, tmpl)
+            if fitted is None:
+                break
+            best, margin, fit, psf = fitted
+            out.ids[q], out.shifts[q] = ids[best], shifts[best]
+            out.margin[q], out.fit[q], out.psf[q] = margin, fit, psf
+            named = known[q, 0] >= 0
+            same = named and ids[best] == known[q, 0] and shifts[best] == known[q, 1]
+            clear = ids[best] >= 0 and margin >= MIN_MARGIN and fit <= MAX_FIT_PER_MARGIN * margin
+            if not last:
+                if same and clear:
+                    out.ok[q] = True
+                    break
+                continue
+            out.ok[q] = clear and (same or not named)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Point-spread functions
+# --------------------------------------------------------------------------------------
+
+
+@functools.cache
+def isotropic_psfs() -> tuple[np.ndarray, ...]:
+    """The isotropic point-spread functions of `PSF_SIGMAS_PX`.
+
+    Returns
+    -------
+    tuple of ndarray
+        Odd-sized float32 kernels summing to 1, in pixels.
+    """
+    return tuple(gaussian_psf(s) for s in PSF_SIGMAS_PX)
+
+
+@functools.cache
+def psf_set() -> tuple[np.ndarray, ...]:
+    """The point-spread functions `read_cards` tries by default: `PSF_SIGMAS_PX`, then
+    `MOTION_LENGTHS_PX` x `MOTION_ANGLES` smears.
+
+    Returns
+    -------
+    tuple of ndarray
+        Odd-sized float32 kernels summing to 1, in pixels.
+    """
+    kernels = list(isotropic_psfs())
+    for length in MOTION_LENGTHS_PX:
+        for a in range(MOTION_ANGLES):
+            kernels.append(smear_psf(length, math.pi * a / MOTION_ANGLES, MOTION_SIGMA_PX))
+    return tuple(kernels)
+
+
+def gaussian_psf(sigma: float) -> np.ndarray:
+    """A Gaussian point-spread function integrated over each kernel pixel.
+
+    Parameters
+    ----------
+    sigma : float
+        Its standard deviation, pixels; 0 or less: the identity.
+
+    Returns
+    -------
+    ndarray
+        An odd-sized float32 kernel summing to 1.
+    """
+    if sigma <= 0:
+        return np.ones((1, 1), np.float32)
+    half = math.ceil(3 * sigma + 0.5)
+    edges = np.arange(-half, half + 2) - 0.5
+    one = np.diff(ndtr(edges / sigma))
+    k = np.outer(one, one)
+    return (k / k.sum()).astype(np.float32)
+
+
+def smear_psf(length: float, angle: float, sigma: float) -> np.ndarray:
+    """A straight smear blurred by a Gaussian, sampled on a 4x finer grid and summed into
+    pixels.
+
+    Parameters
+    ----------
+    length : float
+        The smear's length, pixels.
+    angle : float
+        Its direction, radians from +x toward +y.
+    sigma : float
+        The Gaussian's standard deviation, pixels.
+
+    Returns
+    -------
+    ndarray
+        An odd-sized float32 kernel summing to 1, point-symmetric.
+    """
+    half = math.ceil(0.5 * length + 3 * sigma + 0.5)
+    s = 4
+    g = (np.arange((2 * half + 1) * s) + 0.5) / s - (half + 0.5)  # fine sample centres, pixels
+    x, y = np.meshgrid(g, g)
+    t = np.linspace(-0.5 * length, 0.5 * length, max(int(length * 4), 2))
+    c, si = math.cos(angle), math.sin(angle)
+    k = np.zeros_like(x)
+    sig2 = max(sigma, 0.25 / s) ** 2
+    for ti in t:
+        k += np.exp(-0.5 * ((x - ti * c) ** 2 + (y - ti * si) ** 2) / sig2)
+    k = k.reshape(2 * half + 1, s, 2 * half + 1, s).sum(axis=(1, 3))
+    return (k / k.sum()).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------
+# The card's pixels and their channels
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Patch:
+    """One card's pixels read: their values (P,), and the card rendered per channel at
+    pixel resolution over the padded patch (H, W, n2 + 2): each code cell's area, the white
+    card's, the background's; `rows`, `cols` the read pixels' places in it; `saturated`
+    the places of the pixels at the sensor's full scale (a card whose white clips)."""
+
+    y: np.ndarray
+    channels: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    saturated: tuple[np.ndarray, np.ndarray] | None  # rows and columns of saturated pixels left out of `y`
+
+
+def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool) -> _Patch | None:
+    """The pixels of one card and its channels, on the pyramid level that keeps the card
+    under `MAX_SIDE_PX`; None when the card is degenerate or not wholly in the image."""
+    jac = jacobians(h[None], np.array([[0.5, 0.5]]))[0, 0]
+    side = math.sqrt(abs(float(np.linalg.det(jac))))
+    if not math.isfinite(side) or side <= 0:
+        return None
+    level = max(0, math.floor(math.log2(side / MAX_SIDE_PX)) + 1) if side > MAX_SIDE_PX else 0
+    level = min(level, pyr.max_level)
+    img = pyr.get(level)
+    scale = np.diag([0.5**level, 0.5**level, 1.0])
+    hl = scale @ h
+    try:
+        hinv = np.linalg.inv(hl)
+    except np.linalg.LinAlgError:
+        return None
+    m = REGION_MARGIN
+    corners = np.array([[m, m, 1], [1 - m, m, 1], [1 - m, 1 - m, 1], [m, 1 - m, 1]], np.float64) @ hl.T
+    corners = corners[:, :2] / corners[:, 2:]
+    if not np.isfinite(corners).all():
+        return None
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    ih, iw = img.shape
+    if x0 < 0 or y0 < 0 or x1 >= iw or y1 >= ih:
+        return None
+    # the read pixels: centres inside the region
+    xs, ys = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
+    uv = _to_card(hinv, xs.astype(np.float64), ys.astype(np.float64))
+    inside = ((uv >= m) & (uv <= 1 - m)).all(axis=-1)
+    values = img[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
+    saturated = None
+    if clipped:
+        full = inside & (values >= SATURATED_GREY)
+        inside &= ~full
+        sr, sc = np.nonzero(full)
+        saturated = (sr + pad, sc + pad)
+    if inside.sum() < 12:
+        return None
+    # the channels over the patch padded by the kernel's reach, from SUPERSAMPLE^2
+    # sub-samples of every pixel's footprint
+    px0, py0 = x0 - pad, y0 - pad
+    wp, hp = x1 - x0 + 1 + 2 * pad, y1 - y0 + 1 + 2 * pad
+    s = SUPERSAMPLE
+    fx = px0 - 0.5 + (np.arange(wp * s) + 0.5) / s
+    fy = py0 - 0.5 + (np.arange(hp * s) + 0.5) / s
+    gx, gy = np.meshgrid(fx, fy)
+    label = _labels(_to_card(hinv, gx, gy), n2)
+    # each sub-sample adds 1/s^2 to its pixel's channel (a disc's ink adds nothing)
+    pixel = (np.arange(hp * s) // s)[:, None] * wp + (np.arange(wp * s) // s)[None, :]
+    valid = label >= 0
+    flat = pixel[valid] * (n2 + 2) + label[valid]
+    channels = np.bincount(flat, minlength=hp * wp * (n2 + 2)).reshape(hp, wp, n2 + 2).astype(np.float32) / (s * s)
+    rows, cols = np.nonzero(inside)
+    return _Patch(y=values[rows, cols], channels=np.ascontiguousarray(channels), rows=rows + pad, cols=cols + pad,
+                  saturated=saturated)
+
+
+def _to_card(hinv: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (any shape) to card units (..., 2)."""
+    w = hinv[2, 0] * x + hinv[2, 1] * y + hinv[2, 2]
+    u = (hinv[0, 0] * x + hinv[0, 1] * y + hinv[0, 2]) / w
+    v = (hinv[1, 0] * x + hinv[1, 1] * y + hinv[1, 2]) / w
+    return np.stack([u, v], axis=-1)
+
+
+def _labels(uv: np.ndarray, n2: int) -> np.ndarray:
+    """The channel of each card point (..., 2): code cell 0..n2-1 (row-major), white card
+    n2, off the card n2 + 1, a disc -1 (ink: no channel)."""
+    n = round(math.sqrt(n2))
+    u, v = uv[..., 0], uv[..., 1]
+    step = CODE_SIZE / n
+    col = np.floor((u - CODE_ORIGIN) / step).astype(np.intp)
+    row = np.floor((v - CODE_ORIGIN) / step).astype(np.intp)
+    in_code = (col >= 0) & (col < n) & (row >= 0) & (row < n)
+    on_card = (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+    disc = np.zeros(u.shape, bool)
+    for c in DISC_CENTRES:
+        disc |= (u - c[0]) ** 2 + (v - c[1]) ** 2 <= DISC_RADIUS**2
+    label = np.where(in_code, row * n + col, n2)
+    label = np.where(on_card, label, n2 + 1)
+    return np.where(disc, -1, label)
+
+
+# --------------------------------------------------------------------------------------
+# The fit of every code
+# --------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _patterns(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The patterns a card is fitted with: every code of `family` in every rotation, then
+    every pattern one cell away from one of them (no code: a card that fits one of
+    these best is no printed card, or too unclear to tell). (T, n2 + 1) weights on the
+    channels (code cells, then the white card) that make the printed card: 1 for a white
+    cell and the card; the id (-1: no code) and vertex shift of each."""
+    from app.core.detection.identification import _templates
+
+    tmpl, ids, shifts = _templates(family)  # (T0, n2) white = 1 as read through the quadrilateral
+    n2 = tmpl.shape[1]
+    flips = np.abs(tmpl[:, None, :] - np.eye(n2, dtype=tmpl.dtype)[None]).reshape(-1, n2)
+    every = np.concatenate([tmpl, flips]).astype(np.int64)
+    keys = every @ (np.int64(1) << np.arange(n2, dtype=np.int64))
+    _, first = np.unique(keys, return_index=True)
+    first = np.sort(first)  # the codes (first in `every`) keep their places
+    weights = np.concatenate([every[first], np.ones((first.size, 1), np.int64)], axis=1).astype(np.float64)
+    pid = np.where(first < tmpl.shape[0], ids[np.minimum(first, tmpl.shape[0] - 1)], -1)
+    pshift = np.where(first < tmpl.shape[0], shifts[np.minimum(first, tmpl.shape[0] - 1)], 0)
+    return weights, pid, pshift
+
+
+def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
+               ) -> tuple[int, float, float, int] | None:
+    """The best pattern, its margin and misfit (`CardReads`) and its point-spread
+    function, or None when no pattern fits with the paper brighter than the ink.
+
+    The constant and the background's level are the same columns for every pattern, so
+    they are projected out once per point-spread function (a Schur complement of the
+    channels' Gram matrix); what is left of each pattern's fit is a one-column
+    regression, ``sse = |y|^2 - (v.g)^2 / v.G.v`` over the projected Gram matrix G of
+    the card's channels and their products g with the read. The free card (every cell
+    any grey level) is the same regression over all channels at once."""
+    n_card = tmpl.shape[1]  # code cells and the white card
+    stack = [cv2.filter2D(patch.channels, -1, k, borderType=cv2.BORDER_REPLICATE) if k.size > 1 else patch.channels
+             for k in kernels]
+    a = np.stack(stack)[:, patch.rows, patch.cols].astype(np.float64)  # (K, P, n_card + 1)
+    n_k, n_p = a.shape[:2]
+    w = np.concatenate([np.ones((n_k, n_p, 1)), a[..., n_card:], a[..., :n_card],
+                        np.broadcast_to(patch.y[None, :, None], (n_k, n_p, 1))], axis=2)
+    gram = np.matmul(w.transpose(0, 2, 1), w)  # (K, 2 + n_card + 1, ...): constant, background, card, read
+    zz = gram[:, :2, :2] + 1e-9 * np.eye(2)
+    zm = gram[:, :2, 2:]
+    g = gram[:, 2:, 2:] - np.matmul(zm.transpose(0, 2, 1), np.linalg.solve(zz, zm))
+    gcc, gcy, yy = g[:, :n_card, :n_card], g[:, :n_card, -1], g[:, -1, -1]  # (K, C, C), (K, C), (K,)
+    lin = gcy @ tmpl.T  # (K, T)
+    quad = (np.matmul(tmpl, gcc) * tmpl).sum(axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = lin / quad
+        sse = np.where(contrast > 0, np.maximum(yy[:, None] - lin * contrast, 0.0), np.inf)  # paper brighter than ink
+    sse = np.where(np.isfinite(sse), sse, np.inf)
+    if patch.saturated is not None and patch.saturated[0].size:
+        per_t, best_k = _with_censored(patch, stack, tmpl, gram, contrast, sse)
+    else:
+        best_k = np.argmin(sse, axis=0)  # (T,) each pattern at its best point-spread function
+        per_t = sse[best_k, np.arange(sse.shape[1])]
+    order = np.argpartition(per_t, 1)[:2]
+    best, second = (int(order[0]), int(order[1])) if per_t[order[0]] <= per_t[order[1]] else \
+        (int(order[1]), int(order[0]))
+    if not np.isfinite(per_t[best]):
+        return None
+    k = int(best_k[best])
+    # the free card at the best pattern's point-spread function: the noise floor
+    free = yy[k] - gcy[k] @ np.linalg.lstsq(gcc[k], gcy[k], rcond=1e-10)[0]
+    var = max(free / max(n_p - n_card - 2, 1), 1e-3)
+    # the misfit over the same pixels as the free card (the saturated ones left out)
+    return best, float((per_t[second] - per_t[best]) / var), float(max(sse[k, best] - free, 0.0) / var), k
+
+
+def _with_censored(patch: _Patch, stack: list[np.ndarray], tmpl: np.ndarray, gram: np.ndarray,
+                   contrast: np.ndarray, sse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pattern's best summed squared residual (T,) over the point-spread functions
+    and which function gives it (T,), the saturated pixels counted: a saturated pixel is
+    at least the full scale, so a fit below it there pays the shortfall squared, above
+    it nothing. Only the (function, pattern) pairs that can still be among the two best
+    are completed (the penalty only adds)."""
+    assert patch.saturated is not None
+    sr, sc = patch.saturated
+    n_card = tmpl.shape[1]
+    n_t = sse.shape[1]
+    sat = np.stack(stack)[:, sr, sc].astype(np.float64)  # (K, S, n_card + 1)
+    zz = gram[:, :2, :2] + 1e-9 * np.eye(2)
+    zy = gram[:, :2, -1]  # (K, 2)
+    total = np.full(n_t, np.inf)
+    best_k = np.zeros(n_t, np.intp)
+    flat = np.argsort(sse, axis=None)
+    chunk = 32
+    for start in range(0, flat.size, chunk):
+        pairs = flat[start:start + chunk]
+        lower = sse.flat[pairs[0]]
+        if not np.isfinite(lower) or lower >= np.partition(total, 1)[1]:
+            break  # nothing left can come in among the two best
+        kk, tt = np.unravel_index(pairs, sse.shape)
+        b = contrast[kk, tt]
+        v = tmpl[tt]  # (M, n_card)
+        zu = np.einsum("mzc,mc->mz", gram[kk, :2, 2:2 + n_card], v)
+        coef = np.linalg.solve(zz[kk], (zy[kk] - b[:, None] * zu)[..., None])[..., 0]  # ink level, background
+        pred = coef[:, :1] + coef[:, 1:] * sat[kk, :, n_card] + b[:, None] * np.einsum("msc,mc->ms", sat[kk, :, :n_card], v)
+        short = np.maximum(SATURATED_GREY - pred, 0.0)
+        tot = sse[kk, tt] + np.einsum("ms,ms->m", short, short)
+        for m in range(pairs.size):
+            if tot[m] < total[tt[m]]:
+                total[tt[m]], best_k[tt[m]] = tot[m], kk[m]
+    return total, best_k
