@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+from app.core.detection import _code_reader_kernels as compiled
 from app.core.detection._frame import Pyramid
 from app.core.geometry import jacobians
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS, get_family
@@ -50,6 +51,8 @@ __all__ = [
     "MOTION_LENGTHS_PX",
     "MOTION_SIGMA_PX",
     "PSF_SIGMAS_PX",
+    "QUICK_SIDE_PX",
+    "QUICK_SIGMAS_PX",
     "SMEARED_MAX_READS",
     "CardReads",
     "gaussian_psf",
@@ -64,11 +67,11 @@ __all__ = [
 PSF_SIGMAS_PX = (0.0, 0.35, 0.55, 0.75, 1.0, 1.3, 1.7)
 #: Straight smears tried (length in pixels, each at `MOTION_ANGLES` directions over a
 #: half turn), each with a little isotropic blur (`MOTION_SIGMA_PX`).
-MOTION_LENGTHS_PX = (2.5, 4.0, 6.0, 8.5, 11.5)
-MOTION_ANGLES = 8
+MOTION_LENGTHS_PX = (3.0, 5.5, 9.0)
+MOTION_ANGLES = 6
 MOTION_SIGMA_PX = 0.35
-#: At most this many cards of a frame are tried against the smears (about 1 ms each).
-SMEARED_MAX_READS = 4
+#: At most this many cards of a frame get the full fit with the smears (about 5 ms each).
+SMEARED_MAX_READS = 3
 #: A card larger than this (side, pixels) is read on the pyramid level that brings it
 #: below: its cells are big enough there, and the fit stays small.
 MAX_SIDE_PX = 32.0
@@ -77,6 +80,11 @@ MAX_SIDE_PX = 32.0
 REGION_MARGIN = 0.06
 #: A pixel of a clipped card at this grey level or above is saturated.
 SATURATED_GREY = 254.0
+#: The quick check of a card whose code the nine samples name: a few isotropic blurs, the
+#: card read on the pyramid level that keeps it under `QUICK_SIDE_PX`. A clear read of the
+#: same code settles the card at a fraction of the full fit's cost.
+QUICK_SIGMAS_PX = (0.35, 0.75, 1.2)
+QUICK_SIDE_PX = 20.0
 #: Sub-samples per pixel side for the pixel's footprint.
 SUPERSAMPLE = 3
 #: Acceptance: the margin (see the module's docstring) at least `MIN_MARGIN`, and the best
@@ -169,21 +177,25 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
                     smeared=np.zeros(p, bool))
     if p == 0:
         return out
-    stages = [list(psfs)] if psfs is not None else [list(isotropic_psfs()), list(psf_set())]
     tmpl, ids, shifts = _patterns(family)
     n2 = get_family(family).cells ** 2
     clipped = np.zeros(p, bool) if clipped is None else np.asarray(clipped, bool)
     known = np.full((p, 2), -1, np.intp) if known is None else np.asarray(known, np.intp).reshape(p, 2)
+    full = (list(psfs) if psfs is not None else list(psf_set()), MAX_SIDE_PX)
+    quick = (list(isotropic_psfs(QUICK_SIGMAS_PX)), QUICK_SIDE_PX)
     left = p if smeared is None else smeared
     for q in range(p):
-        for stage, kernels in enumerate(stages):
+        named = known[q, 0] >= 0
+        # the quick check can only settle a card whose code another read names
+        stages = [quick, full] if named and psfs is None else [full]
+        for stage, (kernels, max_side) in enumerate(stages):
             last = stage == len(stages) - 1
-            if stage > 0:
+            if last and psfs is None:
                 if left <= 0:
                     break
                 left -= 1
                 out.smeared[q] = True
-            patch = _card_patch(pyr, hs[q], n2, max(k.shape[0] for k in kernels) // 2, bool(clipped[q]))
+            patch = _card_patch(pyr, hs[q], n2, max(k.shape[0] for k in kernels) // 2, bool(clipped[q]), max_side)
             if patch is None:
                 break
             fitted = _fit_codes(patch, kernels, tmpl)
@@ -192,7 +204,6 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
             best, margin, fit, psf = fitted
             out.ids[q], out.shifts[q] = ids[best], shifts[best]
             out.margin[q], out.fit[q], out.psf[q] = margin, fit, psf
-            named = known[q, 0] >= 0
             same = named and ids[best] == known[q, 0] and shifts[best] == known[q, 1]
             clear = ids[best] >= 0 and margin >= MIN_MARGIN and fit <= MAX_FIT_PER_MARGIN * margin
             if not last:
@@ -210,15 +221,20 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
 
 
 @functools.cache
-def isotropic_psfs() -> tuple[np.ndarray, ...]:
-    """The isotropic point-spread functions of `PSF_SIGMAS_PX`.
+def isotropic_psfs(sigmas: tuple[float, ...] = PSF_SIGMAS_PX) -> tuple[np.ndarray, ...]:
+    """Isotropic point-spread functions.
+
+    Parameters
+    ----------
+    sigmas : tuple of float
+        Their Gaussian standard deviations, pixels (`PSF_SIGMAS_PX` by default).
 
     Returns
     -------
     tuple of ndarray
         Odd-sized float32 kernels summing to 1, in pixels.
     """
-    return tuple(gaussian_psf(s) for s in PSF_SIGMAS_PX)
+    return tuple(gaussian_psf(s) for s in sigmas)
 
 
 @functools.cache
@@ -311,14 +327,15 @@ class _Patch:
     saturated: tuple[np.ndarray, np.ndarray] | None  # rows and columns of saturated pixels left out of `y`
 
 
-def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool) -> _Patch | None:
-    """The pixels of one card and its channels, on the pyramid level that keeps the card
-    under `MAX_SIDE_PX`; None when the card is degenerate or not wholly in the image."""
+def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, max_side: float) -> _Patch | None:
+    """The pixels of one card and its channels, on the pyramid level that keeps the card's
+    side at most `max_side` pixels; None when the card is degenerate or not wholly in the
+    image."""
     jac = jacobians(h[None], np.array([[0.5, 0.5]]))[0, 0]
     side = math.sqrt(abs(float(np.linalg.det(jac))))
     if not math.isfinite(side) or side <= 0:
         return None
-    level = max(0, math.floor(math.log2(side / MAX_SIDE_PX)) + 1) if side > MAX_SIDE_PX else 0
+    level = max(0, math.floor(math.log2(side / max_side)) + 1) if side > max_side else 0
     level = min(level, pyr.max_level)
     img = pyr.get(level)
     scale = np.diag([0.5**level, 0.5**level, 1.0])
@@ -338,9 +355,7 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool) -
     if x0 < 0 or y0 < 0 or x1 >= iw or y1 >= ih:
         return None
     # the read pixels: centres inside the region
-    xs, ys = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
-    uv = _to_card(hinv, xs.astype(np.float64), ys.astype(np.float64))
-    inside = ((uv >= m) & (uv <= 1 - m)).all(axis=-1)
+    inside = compiled.region(hinv, int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1), m)
     values = img[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
     saturated = None
     if clipped:
@@ -352,47 +367,12 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool) -
         return None
     # the channels over the patch padded by the kernel's reach, from SUPERSAMPLE^2
     # sub-samples of every pixel's footprint
-    px0, py0 = x0 - pad, y0 - pad
-    wp, hp = x1 - x0 + 1 + 2 * pad, y1 - y0 + 1 + 2 * pad
-    s = SUPERSAMPLE
-    fx = px0 - 0.5 + (np.arange(wp * s) + 0.5) / s
-    fy = py0 - 0.5 + (np.arange(hp * s) + 0.5) / s
-    gx, gy = np.meshgrid(fx, fy)
-    label = _labels(_to_card(hinv, gx, gy), n2)
-    # each sub-sample adds 1/s^2 to its pixel's channel (a disc's ink adds nothing)
-    pixel = (np.arange(hp * s) // s)[:, None] * wp + (np.arange(wp * s) // s)[None, :]
-    valid = label >= 0
-    flat = pixel[valid] * (n2 + 2) + label[valid]
-    channels = np.bincount(flat, minlength=hp * wp * (n2 + 2)).reshape(hp, wp, n2 + 2).astype(np.float32) / (s * s)
+    channels = compiled.card_channels(hinv, int(x0 - pad), int(y0 - pad), int(x1 - x0 + 1 + 2 * pad),
+                                     int(y1 - y0 + 1 + 2 * pad), SUPERSAMPLE, round(math.sqrt(n2)), CODE_ORIGIN,
+                                     CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
     rows, cols = np.nonzero(inside)
     return _Patch(y=values[rows, cols], channels=np.ascontiguousarray(channels), rows=rows + pad, cols=cols + pad,
                   saturated=saturated)
-
-
-def _to_card(hinv: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (any shape) to card units (..., 2)."""
-    w = hinv[2, 0] * x + hinv[2, 1] * y + hinv[2, 2]
-    u = (hinv[0, 0] * x + hinv[0, 1] * y + hinv[0, 2]) / w
-    v = (hinv[1, 0] * x + hinv[1, 1] * y + hinv[1, 2]) / w
-    return np.stack([u, v], axis=-1)
-
-
-def _labels(uv: np.ndarray, n2: int) -> np.ndarray:
-    """The channel of each card point (..., 2): code cell 0..n2-1 (row-major), white card
-    n2, off the card n2 + 1, a disc -1 (ink: no channel)."""
-    n = round(math.sqrt(n2))
-    u, v = uv[..., 0], uv[..., 1]
-    step = CODE_SIZE / n
-    col = np.floor((u - CODE_ORIGIN) / step).astype(np.intp)
-    row = np.floor((v - CODE_ORIGIN) / step).astype(np.intp)
-    in_code = (col >= 0) & (col < n) & (row >= 0) & (row < n)
-    on_card = (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
-    disc = np.zeros(u.shape, bool)
-    for c in DISC_CENTRES:
-        disc |= (u - c[0]) ** 2 + (v - c[1]) ** 2 <= DISC_RADIUS**2
-    label = np.where(in_code, row * n + col, n2)
-    label = np.where(on_card, label, n2 + 1)
-    return np.where(disc, -1, label)
 
 
 # --------------------------------------------------------------------------------------
@@ -436,21 +416,8 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     n_card = tmpl.shape[1]  # code cells and the white card
     stack = [cv2.filter2D(patch.channels, -1, k, borderType=cv2.BORDER_REPLICATE) if k.size > 1 else patch.channels
              for k in kernels]
-    a = np.stack(stack)[:, patch.rows, patch.cols].astype(np.float64)  # (K, P, n_card + 1)
-    n_k, n_p = a.shape[:2]
-    w = np.concatenate([np.ones((n_k, n_p, 1)), a[..., n_card:], a[..., :n_card],
-                        np.broadcast_to(patch.y[None, :, None], (n_k, n_p, 1))], axis=2)
-    gram = np.matmul(w.transpose(0, 2, 1), w)  # (K, 2 + n_card + 1, ...): constant, background, card, read
-    zz = gram[:, :2, :2] + 1e-9 * np.eye(2)
-    zm = gram[:, :2, 2:]
-    g = gram[:, 2:, 2:] - np.matmul(zm.transpose(0, 2, 1), np.linalg.solve(zz, zm))
-    gcc, gcy, yy = g[:, :n_card, :n_card], g[:, :n_card, -1], g[:, -1, -1]  # (K, C, C), (K, C), (K,)
-    lin = gcy @ tmpl.T  # (K, T)
-    quad = (np.matmul(tmpl, gcc) * tmpl).sum(axis=2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        contrast = lin / quad
-        sse = np.where(contrast > 0, np.maximum(yy[:, None] - lin * contrast, 0.0), np.inf)  # paper brighter than ink
-    sse = np.where(np.isfinite(sse), sse, np.inf)
+    gram, sse, contrast, free_k = compiled.pattern_fits(np.stack(stack), patch.rows, patch.cols, patch.y, tmpl)
+    n_p = patch.y.size
     if patch.saturated is not None and patch.saturated[0].size:
         per_t, best_k = _with_censored(patch, stack, tmpl, gram, contrast, sse)
     else:
@@ -462,8 +429,7 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     if not np.isfinite(per_t[best]):
         return None
     k = int(best_k[best])
-    # the free card at the best pattern's point-spread function: the noise floor
-    free = yy[k] - gcy[k] @ np.linalg.lstsq(gcc[k], gcy[k], rcond=1e-10)[0]
+    free = float(free_k[k])  # the free card at the best pattern's point-spread function: the noise floor
     var = max(free / max(n_p - n_card - 2, 1), 1e-3)
     # the misfit over the same pixels as the free card (the saturated ones left out)
     return best, float((per_t[second] - per_t[best]) / var), float(max(sse[k, best] - free, 0.0) / var), k

@@ -131,3 +131,39 @@ def test_near_code_distractors_are_never_named(px: int) -> None:
             named += [f"{name}, {blur}: id {t.id} (margin {t.read_margin:.0f})"
                       for t in tg.assemble_targets(shot, cand)]
     assert not named, named
+
+
+def _channels_reference(hinv: np.ndarray, x0: int, y0: int, width: int, height: int, sub: int, n: int) -> np.ndarray:
+    """numpy reference of `_code_reader_kernels.card_channels`."""
+    xs = x0 - 0.5 + (np.arange(width * sub) + 0.5) / sub
+    ys = y0 - 0.5 + (np.arange(height * sub) + 0.5) / sub
+    x, y = np.meshgrid(xs, ys)
+    w = hinv[2, 0] * x + hinv[2, 1] * y + hinv[2, 2]
+    u = (hinv[0, 0] * x + hinv[0, 1] * y + hinv[0, 2]) / w
+    v = (hinv[1, 0] * x + hinv[1, 1] * y + hinv[1, 2]) / w
+    step = CODE_SIZE / n
+    col, row = np.floor((u - CODE_ORIGIN) / step).astype(int), np.floor((v - CODE_ORIGIN) / step).astype(int)
+    label = np.where((col >= 0) & (col < n) & (row >= 0) & (row < n), row * n + col, n * n)
+    label = np.where((u >= 0) & (u <= 1) & (v >= 0) & (v <= 1), label, n * n + 1)
+    disc = np.zeros(u.shape, bool)
+    for c in np.asarray(marker_layout(DEFAULT_FAMILY, 0).discs):
+        disc |= (u - c[0]) ** 2 + (v - c[1]) ** 2 <= 0.125**2
+    pixel = (np.arange(height * sub) // sub)[:, None] * width + (np.arange(width * sub) // sub)[None, :]
+    flat = pixel[~disc] * (n * n + 2) + label[~disc]
+    return np.bincount(flat, minlength=height * width * (n * n + 2)).reshape(height, width, -1) / sub**2
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_the_compiled_card_channels_match_the_numpy_reference(n: int) -> None:
+    from app.core.detection._code_reader_kernels import card_channels
+    from app.core.markers import DISC_CENTRES, DISC_RADIUS
+
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        quad = np.array([[10, 12], [40, 9], [43, 41], [8, 38]], np.float64) + rng.normal(0, 2, (4, 2))
+        hinv = np.linalg.inv(homographies(quad[None])[0])
+        got = card_channels(hinv, -2, -3, 56, 54, 3, n, CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
+        want = _channels_reference(hinv, -2, -3, 56, 54, 3, n)
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert got[..., :n * n].sum() > 0  # the code's cells are in the patch
