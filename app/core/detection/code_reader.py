@@ -80,11 +80,12 @@ MAX_SIDE_PX = 32.0
 REGION_MARGIN = 0.06
 #: A pixel of a clipped card at this grey level or above is saturated.
 SATURATED_GREY = 254.0
-#: The quick check of a card whose code the nine samples name: a few isotropic blurs, the
+#: The quick check of a card whose code the nine samples name: two isotropic blurs, the
 #: card read on the pyramid level that keeps it under `QUICK_SIDE_PX`. A clear read of the
-#: same code settles the card at a fraction of the full fit's cost.
-QUICK_SIGMAS_PX = (0.35, 0.75, 1.2)
+#: same code settles the card at a fraction of the full fit's cost (about 0.3 ms against 5).
+QUICK_SIGMAS_PX = (0.45, 0.95)
 QUICK_SIDE_PX = 20.0
+QUICK_SUPERSAMPLE = 3
 #: Sub-samples per pixel side for the pixel's footprint.
 SUPERSAMPLE = 3
 #: Acceptance: the margin (see the module's docstring) at least `MIN_MARGIN`, and the best
@@ -181,21 +182,22 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
     n2 = get_family(family).cells ** 2
     clipped = np.zeros(p, bool) if clipped is None else np.asarray(clipped, bool)
     known = np.full((p, 2), -1, np.intp) if known is None else np.asarray(known, np.intp).reshape(p, 2)
-    full = (list(psfs) if psfs is not None else list(psf_set()), MAX_SIDE_PX)
-    quick = (list(isotropic_psfs(QUICK_SIGMAS_PX)), QUICK_SIDE_PX)
+    full = (list(psfs) if psfs is not None else list(psf_set()), MAX_SIDE_PX, SUPERSAMPLE)
+    quick = (list(isotropic_psfs(QUICK_SIGMAS_PX)), QUICK_SIDE_PX, QUICK_SUPERSAMPLE)
     left = p if smeared is None else smeared
     for q in range(p):
         named = known[q, 0] >= 0
         # the quick check can only settle a card whose code another read names
         stages = [quick, full] if named and psfs is None else [full]
-        for stage, (kernels, max_side) in enumerate(stages):
+        for stage, (kernels, max_side, sub) in enumerate(stages):
             last = stage == len(stages) - 1
             if last and psfs is None:
                 if left <= 0:
                     break
                 left -= 1
                 out.smeared[q] = True
-            patch = _card_patch(pyr, hs[q], n2, max(k.shape[0] for k in kernels) // 2, bool(clipped[q]), max_side)
+            patch = _card_patch(pyr, hs[q], n2, max(k.shape[0] for k in kernels) // 2, bool(clipped[q]), max_side,
+                                sub)
             if patch is None:
                 break
             fitted = _fit_codes(patch, kernels, tmpl)
@@ -327,10 +329,11 @@ class _Patch:
     saturated: tuple[np.ndarray, np.ndarray] | None  # rows and columns of saturated pixels left out of `y`
 
 
-def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, max_side: float) -> _Patch | None:
+def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, max_side: float,
+                sub: int = 3) -> _Patch | None:
     """The pixels of one card and its channels, on the pyramid level that keeps the card's
-    side at most `max_side` pixels; None when the card is degenerate or not wholly in the
-    image."""
+    side at most `max_side` pixels, each pixel's footprint sub-sampled `sub` x `sub` times;
+    None when the card is degenerate or not wholly in the image."""
     jac = jacobians(h[None], np.array([[0.5, 0.5]]))[0, 0]
     side = math.sqrt(abs(float(np.linalg.det(jac))))
     if not math.isfinite(side) or side <= 0:
@@ -365,10 +368,10 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
         saturated = (sr + pad, sc + pad)
     if inside.sum() < 12:
         return None
-    # the channels over the patch padded by the kernel's reach, from SUPERSAMPLE^2
-    # sub-samples of every pixel's footprint
+    # the channels over the patch padded by the kernel's reach, from sub^2 sub-samples of
+    # every pixel's footprint
     channels = compiled.card_channels(hinv, int(x0 - pad), int(y0 - pad), int(x1 - x0 + 1 + 2 * pad),
-                                     int(y1 - y0 + 1 + 2 * pad), SUPERSAMPLE, round(math.sqrt(n2)), CODE_ORIGIN,
+                                     int(y1 - y0 + 1 + 2 * pad), sub, round(math.sqrt(n2)), CODE_ORIGIN,
                                      CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
     rows, cols = np.nonzero(inside)
     return _Patch(y=values[rows, cols], channels=np.ascontiguousarray(channels), rows=rows + pad, cols=cols + pad,
@@ -402,6 +405,30 @@ def _patterns(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return weights, pid, pshift
 
 
+def _blur(channels: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """`channels` (H, W, C) float32 blurred by `kernel`: by its two factors where it is
+    separable (a Gaussian; about 2.5 times faster), else whole."""
+    if kernel.size == 1:
+        return channels
+    factors = _factors(kernel.shape, kernel.tobytes())
+    if factors is not None:
+        return cv2.sepFilter2D(channels, -1, factors[1], factors[0], borderType=cv2.BORDER_REPLICATE)
+    return cv2.filter2D(channels, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+
+
+@functools.lru_cache(maxsize=256)
+def _factors(shape: tuple[int, ...], data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    """The column and row factors of a rank-one kernel (its bytes, for the cache), or None."""
+    kernel = np.frombuffer(data, np.float32).reshape(shape).astype(np.float64)
+    u, sv, vt = np.linalg.svd(kernel)
+    if sv.size > 1 and sv[1] > 1e-6 * sv[0]:
+        return None
+    col, row = u[:, 0] * math.sqrt(sv[0]), vt[0] * math.sqrt(sv[0])
+    if col.sum() < 0:
+        col, row = -col, -row
+    return col.astype(np.float32), row.astype(np.float32)
+
+
 def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
                ) -> tuple[int, float, float, int] | None:
     """The best pattern, its margin and misfit (`CardReads`) and its point-spread
@@ -414,8 +441,7 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     the card's channels and their products g with the read. The free card (every cell
     any grey level) is the same regression over all channels at once."""
     n_card = tmpl.shape[1]  # code cells and the white card
-    stack = [cv2.filter2D(patch.channels, -1, k, borderType=cv2.BORDER_REPLICATE) if k.size > 1 else patch.channels
-             for k in kernels]
+    stack = [_blur(patch.channels, k) for k in kernels]
     gram, sse, contrast, free_k = compiled.pattern_fits(np.stack(stack), patch.rows, patch.cols, patch.y, tmpl)
     n_p = patch.y.size
     if patch.saturated is not None and patch.saturated[0].size:
