@@ -333,7 +333,8 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
                 sub: int = 3) -> _Patch | None:
     """The pixels of one card and its channels, on the pyramid level that keeps the card's
     side at most `max_side` pixels, each pixel's footprint sub-sampled `sub` x `sub` times;
-    None when the card is degenerate or not wholly in the image."""
+    None when the card is degenerate or its code is not wholly in the image (the pixels of
+    the card outside the image are left out)."""
     jac = jacobians(h[None], np.array([[0.5, 0.5]]))[0, 0]
     side = math.sqrt(abs(float(np.linalg.det(jac))))
     if not math.isfinite(side) or side <= 0:
@@ -352,11 +353,14 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
     corners = corners[:, :2] / corners[:, 2:]
     if not np.isfinite(corners).all():
         return None
-    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
     ih, iw = img.shape
-    if x0 < 0 or y0 < 0 or x1 >= iw or y1 >= ih:
-        return None
+    code = np.array([[CODE_ORIGIN, CODE_ORIGIN, 1], [CODE_ORIGIN + CODE_SIZE, CODE_ORIGIN, 1],
+                     [CODE_ORIGIN + CODE_SIZE, CODE_ORIGIN + CODE_SIZE, 1], [CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE, 1]]) @ hl.T
+    code = code[:, :2] / code[:, 2:]
+    if not ((code >= 0).all() and (code[:, 0] <= iw - 1).all() and (code[:, 1] <= ih - 1).all()):
+        return None  # the code itself must be in the image; the rest of the card may leave it
+    x0, y0 = np.maximum(np.floor(corners.min(axis=0)).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(corners.max(axis=0)).astype(int), [iw - 1, ih - 1])
     # the read pixels: centres inside the region
     inside = compiled.region(hinv, int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1), m)
     values = img[y0:y1 + 1, x0:x1 + 1].astype(np.float64)

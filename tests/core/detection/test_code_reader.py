@@ -167,3 +167,16 @@ def test_the_compiled_card_channels_match_the_numpy_reference(n: int) -> None:
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, atol=1e-6)
         assert got[..., :n * n].sum() > 0  # the code's cells are in the patch
+
+
+def test_a_card_cut_by_the_image_border_is_still_read() -> None:
+    # The card's margin runs off the image's left edge; its discs and code are inside.
+    px = 60
+    img = np.full((120, 120), 110, np.uint8)
+    card = render_card(marker_layout(DEFAULT_FAMILY, 42), px)
+    img[30:30 + px, 0:px - 3] = card[:, 3:]
+    discs = np.asarray(marker_layout(DEFAULT_FAMILY, 42).discs, np.float64) * px - 0.5 + np.array([-3.0, 30.0])
+    reads = read_cards(Pyramid(img), homographies(discs[None]), DEFAULT_FAMILY)
+    assert reads.ok[0] and reads.ids[0] == 42 and reads.shifts[0] == 0
+    cand = np.column_stack([discs, np.full(4, 0.125 * px), np.ones(4)])
+    assert [t.id for t in tg.assemble_targets(img, cand)] == [42]
