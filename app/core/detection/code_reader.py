@@ -6,25 +6,27 @@ the cells' edges and carry little signal. Here every pixel of the card takes par
 
     I(p) = a + b * u_c(p) + g * beyond(p)
 
-where u_c is the printed card of code c (white 1, ink 0) integrated over pixel p's
+where u_c is the card printed with pattern c (white 1, ink 0) integrated over pixel p's
 footprint and blurred by a point-spread function k, `beyond` the part of p's footprint
 off the card (the unknown background, blurred the same way), and a, b, g are fitted by
-least squares for every code, rotation and blur together. Because the model is linear in
-a, b, g, the fit of every code comes from one small Gram matrix of the rendered channels
-(one per code cell, the white card, the background and a constant) per blur, so all
-codes and rotations cost about what one does.
+least squares. The patterns are every code in every rotation and every pattern one cell
+from a code (`_patterns`: no card carries those, so a card that fits one best is not
+read). Because the model is linear in a, b, g, the fit of every pattern comes from one
+small Gram matrix of the rendered channels (one per code cell, the white card, the
+background and a constant) per blur, so all 512 patterns cost about what one does.
 
 The blur is not known in advance. It is chosen from a set of point-spread functions
 (`PSF_SIGMAS_PX` isotropic, `MOTION_LENGTHS_PX` x `MOTION_ANGLES` smears) by the same fit:
-the four discs and the white around them, which every code shares, pin it down. A
+the four discs and the white around them, which every pattern shares, pin it down. A
 caller that knows the blur (a bench with the simulator's truth) passes it instead.
 
-A read is judged by its margin: the difference of the summed squared residuals of the
-best other (code, rotation) and of the best, in units of the best fit's residual
-variance (twice the log-likelihood ratio under Gaussian noise of that variance), and
-by its residual relative to the card's contrast.
+A read is judged by its margin, how much worse the best other pattern fits than the best,
+and its misfit, how much worse the best fits than a free card whose cells may take any
+grey level; both in units of the free card's residual variance (the margin is then twice
+the log-likelihood ratio under Gaussian noise of that variance). See `MIN_MARGIN` and
+`MAX_FIT_PER_MARGIN`.
 
-Pure numpy/OpenCV; no I/O.
+Pure numpy/OpenCV and compiled kernels (`_code_reader_kernels`); no I/O.
 """
 
 from __future__ import annotations
@@ -111,7 +113,8 @@ class CardReads:
         Its vertex shift: vertex m of the quadrilateral read is the card's disc
         (m + shift) % 4 in printed order.
     margin : ndarray, shape (P,)
-        How much worse the best other (code, rotation) fits, in units of the best fit's
+        How much worse the best other pattern (another code, this code turned, or a
+        pattern one cell from a code) fits than the best, in units of the free card's
         residual variance; 0 where the card could not be read.
     fit : ndarray, shape (P,)
         How much worse the best code fits than a card whose cells may take any grey
@@ -138,11 +141,12 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
     """Read the codes of cards by fitting every code's rendered image to every pixel.
 
     A read is accepted on its margin and misfit (`MIN_MARGIN`, `MAX_FIT_PER_MARGIN`), and
-    never when `known` names another code. By default a card is fitted first with the
-    isotropic point-spread functions (`isotropic_psfs`) alone, which settles it when its
-    best code is the one `known` names and the read is clear; any other card is fitted
-    with the smears as well (`psf_set`): an isotropic fit of a smeared small card can
-    name a wrong code clearly.
+    never when `known` names another code. By default a card whose code `known` names
+    gets a quick check first (`QUICK_SIGMAS_PX`, the card at most `QUICK_SIDE_PX` wide),
+    which settles it when the whole card names the same code clearly; any other card is
+    fitted with every isotropic blur and the smears (`psf_set`, the card at most
+    `MAX_SIDE_PX` wide): an isotropic fit of a smeared small card can name a wrong code
+    clearly.
 
     Parameters
     ----------
