@@ -150,17 +150,17 @@ def assemble_targets(gray: np.ndarray, candidates: np.ndarray, family: str = DEF
     used_ids: set[int] = set()
     used_cands: set[int] = set()
     judged: list[set[int]] = []
-    motion_left = SMEARED_MAX_READS
+    smeared_left = SMEARED_MAX_READS
     if quads.shape[0]:
-        res = _judge(gray, pyr, cand[quads, :2], fam.cells, family, motion_left, clock)
+        res = _judge(gray, pyr, cand[quads, :2], fam.cells, family, smeared_left, clock)
         if res is not None:
-            motion_left -= res.motion_reads
+            smeared_left -= res.smeared_reads
             judged = [set(q) for q in quads[res.keep].tolist()]
             out = _select(res, quads[res.keep], used_ids, used_cands)
     n_main = len(out)
     clock.lap("identify", identified=n_main)
     if graph is not None:
-        out += _complete(gray, pyr, graph, out, used_ids, used_cands, judged, fam.cells, family, motion_left)
+        out += _complete(gray, pyr, graph, out, used_ids, used_cands, judged, fam.cells, family, smeared_left)
     clock.lap("complete", identified=len(out), completed=len(out) - n_main)
     out.sort(key=lambda t: t.id)
     return out
@@ -210,14 +210,14 @@ class _Judged:
     margin: np.ndarray
     refined: np.ndarray
     radii: np.ndarray
-    motion_reads: int
+    smeared_reads: int
 
 
-def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str, motion_reads: int,
+def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str, smeared_reads: int,
            clock: _Clock | None = None, max_shift: np.ndarray | float = MAX_REFINE_SHIFT) -> _Judged | None:
     """Verify, refine and identify disc quadrilaterals `pts` (P, 4, 2) (layout
     orientation): None if none passes the coarse checks. `n`: the family's code has
-    n x n cells; `motion_reads`: at most this many cards tried against smeared cards;
+    n x n cells; `smeared_reads`: at most this many cards get the whole-card fit with smears;
     `max_shift`: how far each disc may move in refinement, in predicted disc radii
     (scalar or (4,))."""
     hs = homographies(pts)
@@ -264,18 +264,18 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
     sound = np.flatnonzero(ok)
     known = np.where(decoded[sound, None], np.stack([ids[sound], shifts[sound]], axis=1), -1)
     reads = read_cards(pyr, hs[sound], family, clipped=m.white[sound] >= CLIPPED_WHITE_GREY, known=known,
-                       smeared=max(motion_reads, 0))
+                       smeared=max(smeared_reads, 0))
     decoded = np.zeros_like(decoded)
     decoded[sound] = reads.ok
     ids[sound], shifts[sound] = reads.ids, reads.shifts
     margin = np.full(ok.shape, np.nan)
     margin[sound] = reads.margin
     return _Judged(keep=keep, ok=ok, measures=m, decoded=decoded, ids=ids, shifts=shifts, gap=gap, margin=margin,
-                   refined=refined, radii=radii, motion_reads=int(reads.smeared.sum()))
+                   refined=refined, radii=radii, smeared_reads=int(reads.smeared.sum()))
 
 
 def _complete(gray: np.ndarray, pyr: Pyramid, g: _Graph, found: list[DetectedTarget], used_ids: set[int],
-              used_cands: set[int], judged: list[set[int]], n: int, family: str, motion_reads: int
+              used_cands: set[int], judged: list[set[int]], n: int, family: str, smeared_reads: int
               ) -> list[DetectedTarget]:
     """Targets completed from three discs (`completion`); `found`: the targets found
     already (no candidate on their cards is used); `used_ids`, `used_cands` (input
@@ -285,7 +285,7 @@ def _complete(gray: np.ndarray, pyr: Pyramid, g: _Graph, found: list[DetectedTar
     proposals = _three_disc_cards(gray, pyr, g, [t.discs for t in found], judged, n)
     if proposals is None:
         return []
-    res = _judge(gray, pyr, proposals.discs, n, family, motion_reads, max_shift=_MAX_SHIFT)
+    res = _judge(gray, pyr, proposals.discs, n, family, smeared_reads, max_shift=_MAX_SHIFT)
     if res is None:
         return []
     rows = proposals.rows[res.keep]
