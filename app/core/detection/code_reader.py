@@ -42,6 +42,7 @@ from scipy.special import ndtr
 
 from app.core.detection import _code_reader_kernels as compiled
 from app.core.detection._frame import Pyramid
+from app.core.detection.identification import _templates
 from app.core.geometry import jacobians
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS, get_family
 
@@ -398,8 +399,6 @@ def _patterns(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     these best is no printed card, or too unclear to tell). (T, n2 + 1) weights on the
     channels (code cells, then the white card) that make the printed card: 1 for a white
     cell and the card; the id (-1: no code) and vertex shift of each."""
-    from app.core.detection.identification import _templates
-
     tmpl, ids, shifts = _templates(family)  # (T0, n2) white = 1 as read through the quadrilateral
     n2 = tmpl.shape[1]
     flips = np.abs(tmpl[:, None, :] - np.eye(n2, dtype=tmpl.dtype)[None]).reshape(-1, n2)
