@@ -13,7 +13,7 @@ least squares. The patterns are every code in every rotation and every pattern o
 from a code (`_patterns`: no card carries those, so a card that fits one best is not
 read). Because the model is linear in a, b, g, the fit of every pattern comes from one
 small Gram matrix of the rendered channels (one per code cell, the white card, the
-background and a constant) per blur, so all 512 patterns cost about what one does.
+background and a constant) per blur, so all 496 patterns of `fido3x3` cost about what one does.
 
 The blur is not known in advance. It is chosen from a set of point-spread functions
 (`PSF_SIGMAS_PX` isotropic, `MOTION_LENGTHS_PX` x `MOTION_ANGLES` smears) by the same fit:
@@ -95,7 +95,9 @@ SUPERSAMPLE = 3
 #: code's misfit (`CardReads.fit`) at most `MAX_FIT_PER_MARGIN` times the margin: the card
 #: as read must lie nearer its code than the code lies to the next pattern. A printed card
 #: keeps the ratio under 1.7 (bench_code_read, unclipped cards through their true discs);
-#: dice, text and checkerboards in the code area go far above it.
+#: dice, text and checkerboards in the code area go far above it. For a family whose
+#: codes are d > 2 cells apart (`fido4x4`, which corrects a misread cell) the ratio allowed
+#: is d - 1 times this.
 MIN_MARGIN = 12.0
 MAX_FIT_PER_MARGIN = 2.0
 
@@ -187,6 +189,9 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
     n2 = get_family(family).cells ** 2
     clipped = np.zeros(p, bool) if clipped is None else np.asarray(clipped, bool)
     known = np.full((p, 2), -1, np.intp) if known is None else np.asarray(known, np.intp).reshape(p, 2)
+    # a family whose codes are d cells apart corrects a misread cell: its card may sit a cell
+    # from its code, so its misfit may be that much larger against the margin
+    fit_per_margin = MAX_FIT_PER_MARGIN * (get_family(family).min_distance - 1)
     full = (list(psfs) if psfs is not None else list(psf_set()), MAX_SIDE_PX, SUPERSAMPLE)
     quick = (list(isotropic_psfs(QUICK_SIGMAS_PX)), QUICK_SIDE_PX, QUICK_SUPERSAMPLE)
     left = p if smeared is None else smeared
@@ -212,7 +217,7 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
             out.ids[q], out.shifts[q] = ids[best], shifts[best]
             out.margin[q], out.fit[q], out.psf[q] = margin, fit, psf
             same = named and ids[best] == known[q, 0] and shifts[best] == known[q, 1]
-            clear = ids[best] >= 0 and margin >= MIN_MARGIN and fit <= MAX_FIT_PER_MARGIN * margin
+            clear = ids[best] >= 0 and margin >= MIN_MARGIN and fit <= fit_per_margin * margin
             if not last:
                 if same and clear:
                     out.ok[q] = True
@@ -394,14 +399,18 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
 
 @functools.cache
 def _patterns(family: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The patterns a card is fitted with: every code of `family` in every rotation, then
-    every pattern one cell away from one of them (no code: a card that fits one of
-    these best is no printed card, or too unclear to tell). (T, n2 + 1) weights on the
-    channels (code cells, then the white card) that make the printed card: 1 for a white
-    cell and the card; the id (-1: no code) and vertex shift of each."""
+    """The patterns a card is fitted with: every code of `family` in every rotation, then,
+    for a family whose codes are two cells apart (a misread cell is refused, not
+    corrected), every pattern one cell from one of them (no code: a card that fits one of
+    these best is no printed card, or too unclear to tell; 256 for `fido3x3`, 496 in all).
+    (T, n2 + 1) weights on the channels (code cells, then the white card) that make the
+    printed card: 1 for a white cell and the card; the id (-1: no code) and vertex shift
+    of each."""
     tmpl, ids, shifts = _templates(family)  # (T0, n2) white = 1 as read through the quadrilateral
     n2 = tmpl.shape[1]
-    flips = np.abs(tmpl[:, None, :] - np.eye(n2, dtype=tmpl.dtype)[None]).reshape(-1, n2)
+    corrects = get_family(family).min_distance > 2  # a pattern one cell from a code reads as that code
+    flips = np.zeros((0, n2), tmpl.dtype) if corrects else \
+        np.abs(tmpl[:, None, :] - np.eye(n2, dtype=tmpl.dtype)[None]).reshape(-1, n2)
     every = np.concatenate([tmpl, flips]).astype(np.int64)
     keys = every @ (np.int64(1) << np.arange(n2, dtype=np.int64))
     _, first = np.unique(keys, return_index=True)

@@ -180,3 +180,20 @@ def test_a_card_cut_by_the_image_border_is_still_read() -> None:
     assert reads.ok[0] and reads.ids[0] == 42 and reads.shifts[0] == 0
     cand = np.column_stack([discs, np.full(4, 0.125 * px), np.ones(4)])
     assert [t.id for t in tg.assemble_targets(img, cand)] == [42]
+
+
+def test_a_4x4_card_is_read_and_a_misread_cell_is_corrected() -> None:
+    # fido4x4 codes are four cells apart: a card with one cell printed wrong still reads
+    # as its code, as the nine samples read it.
+    px = 48
+    for marker_id in (0, 77, 281):
+        img = np.full((px + 80, px + 80), 110, np.uint8)
+        img[40:40 + px, 40:40 + px] = render_card(marker_layout("fido4x4", marker_id), px)
+        discs = np.asarray(marker_layout("fido4x4", marker_id).discs, np.float64) * px - 0.5 + 40
+        reads = read_cards(Pyramid(img), homographies(discs[None]), "fido4x4")
+        assert reads.ok[0] and reads.ids[0] == marker_id and reads.shifts[0] == 0
+        code = get_family("fido4x4").codes[marker_id].copy()
+        code[1, 2] ^= 1
+        img[40:40 + px, 40:40 + px] = _card_with(_cells(code), px)
+        reads = read_cards(Pyramid(img), homographies(discs[None]), "fido4x4")
+        assert reads.ok[0] and reads.ids[0] == marker_id and reads.shifts[0] == 0
