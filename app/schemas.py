@@ -635,8 +635,8 @@ class DetectedTargetOut(BaseModel):
     read_margin: float | None = Field(None, description=(
         "How clearly the code was read: how much worse the best other printed pattern (another code, this "
         "code turned, or a pattern one cell from a code) fits the card's pixels than this code, in units of "
-        "the image noise (twice the log-likelihood ratio). Codes are accepted from 12 (or from any margin when "
-        "the quick nine-sample read names the same code); a few hundred is a clear read. None when not known."))
+        "the pixels' residual variance (twice the log-likelihood ratio). Codes are accepted from 12; a few "
+        "hundred is a clear read. None when not known."))
 
 
 class DetectResponse(BaseModel):

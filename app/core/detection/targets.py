@@ -78,7 +78,8 @@ class DetectedTarget:
     read_margin : float
         The whole-card read's margin (`code_reader.CardReads.margin`): how much worse the
         best other printed pattern fits the card's pixels than this code, in units of the
-        image noise (twice the log-likelihood ratio); NaN when not known.
+        pixels' residual variance around a free fit of the card (twice the log-likelihood
+        ratio); NaN when not known.
     """
 
     id: int
