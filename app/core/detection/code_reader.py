@@ -43,7 +43,7 @@ from scipy.special import ndtr
 from app.core.detection import _code_reader_kernels as compiled
 from app.core.detection._frame import Pyramid
 from app.core.detection.identification import _templates
-from app.core.geometry import jacobians
+from app.core.geometry import apply_homographies, jacobians
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS, get_family
 
 __all__ = [
@@ -359,14 +359,12 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
     except np.linalg.LinAlgError:
         return None
     m = REGION_MARGIN
-    corners = np.array([[m, m, 1], [1 - m, m, 1], [1 - m, 1 - m, 1], [m, 1 - m, 1]], np.float64) @ hl.T
-    corners = corners[:, :2] / corners[:, 2:]
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    region_corners, code_corners = m + (1 - 2 * m) * square, CODE_ORIGIN + CODE_SIZE * square
+    corners, code = apply_homographies(hl[None], np.concatenate([region_corners, code_corners]))[0].reshape(2, 4, 2)
     if not np.isfinite(corners).all():
         return None
     ih, iw = img.shape
-    code = np.array([[CODE_ORIGIN, CODE_ORIGIN, 1], [CODE_ORIGIN + CODE_SIZE, CODE_ORIGIN, 1],
-                     [CODE_ORIGIN + CODE_SIZE, CODE_ORIGIN + CODE_SIZE, 1], [CODE_ORIGIN, CODE_ORIGIN + CODE_SIZE, 1]]) @ hl.T
-    code = code[:, :2] / code[:, 2:]
     if not ((code >= 0).all() and (code[:, 0] <= iw - 1).all() and (code[:, 1] <= ih - 1).all()):
         return None  # the code itself must be in the image; the rest of the card may leave it
     x0, y0 = np.maximum(np.floor(corners.min(axis=0)).astype(int), 0)
@@ -388,7 +386,7 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
                                      int(y1 - y0 + 1 + 2 * pad), sub, round(math.sqrt(n2)), CODE_ORIGIN,
                                      CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
     rows, cols = np.nonzero(inside)
-    return _Patch(y=values[rows, cols], channels=np.ascontiguousarray(channels), rows=rows + pad, cols=cols + pad,
+    return _Patch(y=values[rows, cols], channels=channels, rows=rows + pad, cols=cols + pad,
                   saturated=saturated)
 
 
@@ -457,8 +455,8 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     the card's channels and their products g with the read. The free card (every cell
     any grey level) is the same regression over all channels at once."""
     n_card = tmpl.shape[1]  # code cells and the white card
-    stack = [_blur(patch.channels, k) for k in kernels]
-    gram, sse, contrast, free_k = compiled.pattern_fits(np.stack(stack), patch.rows, patch.cols, patch.y, tmpl)
+    stack = np.stack([_blur(patch.channels, k) for k in kernels])  # (K, H, W, n_card + 1)
+    gram, sse, contrast, free_k = compiled.pattern_fits(stack, patch.rows, patch.cols, patch.y, tmpl)
     n_p = patch.y.size
     if patch.saturated is not None and patch.saturated[0].size:
         per_t, best_k = _with_censored(patch, stack, tmpl, gram, contrast, sse)
@@ -477,7 +475,7 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     return best, float((per_t[second] - per_t[best]) / var), float(max(sse[k, best] - free, 0.0) / var), k
 
 
-def _with_censored(patch: _Patch, stack: list[np.ndarray], tmpl: np.ndarray, gram: np.ndarray,
+def _with_censored(patch: _Patch, stack: np.ndarray, tmpl: np.ndarray, gram: np.ndarray,
                    contrast: np.ndarray, sse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each pattern's best summed squared residual (T,) over the point-spread functions
     and which function gives it (T,), the saturated pixels counted: a saturated pixel is
@@ -488,7 +486,7 @@ def _with_censored(patch: _Patch, stack: list[np.ndarray], tmpl: np.ndarray, gra
     sr, sc = patch.saturated
     n_card = tmpl.shape[1]
     n_t = sse.shape[1]
-    sat = np.stack(stack)[:, sr, sc].astype(np.float64)  # (K, S, n_card + 1)
+    sat = stack[:, sr, sc].astype(np.float64)  # (K, S, n_card + 1)
     zz = gram[:, :2, :2] + 1e-9 * np.eye(2)
     zy = gram[:, :2, -1]  # (K, 2)
     total = np.full(n_t, np.inf)
