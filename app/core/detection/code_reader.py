@@ -43,7 +43,6 @@ from scipy.special import ndtr
 from app.core.detection import _code_reader_kernels as compiled
 from app.core.detection._frame import Pyramid
 from app.core.detection.identification import _templates
-from app.core.geometry import apply_homographies, jacobians
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS, get_family
 
 __all__ = [
@@ -345,49 +344,23 @@ def _card_patch(pyr: Pyramid, h: np.ndarray, n2: int, pad: int, clipped: bool, m
     side at most `max_side` pixels, each pixel's footprint sub-sampled `sub` x `sub` times;
     None when the card is degenerate or its code is not wholly in the image (the pixels of
     the card outside the image are left out)."""
-    jac = jacobians(h[None], np.array([[0.5, 0.5]]))[0, 0]
-    side = math.sqrt(abs(float(np.linalg.det(jac))))
+    side = compiled.card_side(h)
     if not math.isfinite(side) or side <= 0:
         return None
     level = max(0, math.floor(math.log2(side / max_side)) + 1) if side > max_side else 0
     level = min(level, pyr.max_level)
-    img = pyr.get(level)
-    scale = np.diag([0.5**level, 0.5**level, 1.0])
-    hl = scale @ h
-    try:
-        hinv = np.linalg.inv(hl)
-    except np.linalg.LinAlgError:
-        return None
-    m = REGION_MARGIN
-    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    region_corners, code_corners = m + (1 - 2 * m) * square, CODE_ORIGIN + CODE_SIZE * square
-    corners, code = apply_homographies(hl[None], np.concatenate([region_corners, code_corners]))[0].reshape(2, 4, 2)
-    if not np.isfinite(corners).all():
-        return None
-    ih, iw = img.shape
-    if not ((code >= 0).all() and (code[:, 0] <= iw - 1).all() and (code[:, 1] <= ih - 1).all()):
-        return None  # the code itself must be in the image; the rest of the card may leave it
-    x0, y0 = np.maximum(np.floor(corners.min(axis=0)).astype(int), 0)
-    x1, y1 = np.minimum(np.ceil(corners.max(axis=0)).astype(int), [iw - 1, ih - 1])
-    # the read pixels: centres inside the region
-    inside = compiled.region(hinv, int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1), m)
-    values = img[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
-    saturated = None
-    if clipped:
-        full = inside & (values >= SATURATED_GREY)
-        inside &= ~full
-        sr, sc = np.nonzero(full)
-        saturated = (sr + pad, sc + pad)
-    if inside.sum() < 12:
+    hl = h.copy()
+    hl[:2] *= 0.5**level
+    ok, hinv, x0, y0, width, height, rows, cols, values, sat_rows, sat_cols = compiled.card_pixels(
+        pyr.get(level), hl, REGION_MARGIN, CODE_ORIGIN, CODE_SIZE, clipped, SATURATED_GREY)
+    if not ok or rows.size < 12:
         return None
     # the channels over the patch padded by the kernel's reach, from sub^2 sub-samples of
     # every pixel's footprint
-    channels = compiled.card_channels(hinv, int(x0 - pad), int(y0 - pad), int(x1 - x0 + 1 + 2 * pad),
-                                     int(y1 - y0 + 1 + 2 * pad), sub, round(math.sqrt(n2)), CODE_ORIGIN,
-                                     CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
-    rows, cols = np.nonzero(inside)
-    return _Patch(y=values[rows, cols], channels=channels, rows=rows + pad, cols=cols + pad,
-                  saturated=saturated)
+    channels = compiled.card_channels(hinv, x0 - pad, y0 - pad, width + 2 * pad, height + 2 * pad, sub,
+                                      round(math.sqrt(n2)), CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS)
+    return _Patch(y=values, channels=channels, rows=rows + pad, cols=cols + pad,
+                  saturated=(sat_rows + pad, sat_cols + pad) if clipped else None)
 
 
 # --------------------------------------------------------------------------------------
@@ -459,7 +432,9 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     gram, sse, contrast, free_k = compiled.pattern_fits(stack, patch.rows, patch.cols, patch.y, tmpl)
     n_p = patch.y.size
     if patch.saturated is not None and patch.saturated[0].size:
-        per_t, best_k = _with_censored(patch, stack, tmpl, gram, contrast, sse)
+        # a saturated pixel is at least the full scale: a fit below it there pays the
+        # shortfall squared (`compiled.censored_fits`)
+        per_t, best_k = compiled.censored_fits(stack, *patch.saturated, tmpl, gram, contrast, sse, SATURATED_GREY)
     else:
         best_k = np.argmin(sse, axis=0)  # (T,) each pattern at its best point-spread function
         per_t = sse[best_k, np.arange(sse.shape[1])]
@@ -473,40 +448,3 @@ def _fit_codes(patch: _Patch, kernels: list[np.ndarray], tmpl: np.ndarray
     var = max(free / max(n_p - n_card - 2, 1), 1e-3)
     # the misfit over the same pixels as the free card (the saturated ones left out)
     return best, float((per_t[second] - per_t[best]) / var), float(max(sse[k, best] - free, 0.0) / var), k
-
-
-def _with_censored(patch: _Patch, stack: np.ndarray, tmpl: np.ndarray, gram: np.ndarray,
-                   contrast: np.ndarray, sse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each pattern's best summed squared residual (T,) over the point-spread functions
-    and which function gives it (T,), the saturated pixels counted: a saturated pixel is
-    at least the full scale, so a fit below it there pays the shortfall squared, above
-    it nothing. Only the (function, pattern) pairs that can still be among the two best
-    are completed (the penalty only adds)."""
-    assert patch.saturated is not None
-    sr, sc = patch.saturated
-    n_card = tmpl.shape[1]
-    n_t = sse.shape[1]
-    sat = stack[:, sr, sc].astype(np.float64)  # (K, S, n_card + 1)
-    zz = gram[:, :2, :2] + 1e-9 * np.eye(2)
-    zy = gram[:, :2, -1]  # (K, 2)
-    total = np.full(n_t, np.inf)
-    best_k = np.zeros(n_t, np.intp)
-    flat = np.argsort(sse, axis=None)
-    chunk = 32
-    for start in range(0, flat.size, chunk):
-        pairs = flat[start:start + chunk]
-        lower = sse.flat[pairs[0]]
-        if not np.isfinite(lower) or lower >= np.partition(total, 1)[1]:
-            break  # nothing left can come in among the two best
-        kk, tt = np.unravel_index(pairs, sse.shape)
-        b = contrast[kk, tt]
-        v = tmpl[tt]  # (M, n_card)
-        zu = np.einsum("mzc,mc->mz", gram[kk, :2, 2:2 + n_card], v)
-        coef = np.linalg.solve(zz[kk], (zy[kk] - b[:, None] * zu)[..., None])[..., 0]  # ink level, background
-        pred = coef[:, :1] + coef[:, 1:] * sat[kk, :, n_card] + b[:, None] * np.einsum("msc,mc->ms", sat[kk, :, :n_card], v)
-        short = np.maximum(SATURATED_GREY - pred, 0.0)
-        tot = sse[kk, tt] + np.einsum("ms,ms->m", short, short)
-        for m in range(pairs.size):
-            if tot[m] < total[tt[m]]:
-                total[tt[m]], best_k[tt[m]] = tot[m], kk[m]
-    return total, best_k

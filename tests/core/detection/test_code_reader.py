@@ -197,3 +197,47 @@ def test_a_4x4_card_is_read_and_a_misread_cell_is_corrected() -> None:
         img[40:40 + px, 40:40 + px] = _card_with(_cells(code), px)
         reads = read_cards(Pyramid(img), homographies(discs[None]), "fido4x4")
         assert reads.ok[0] and reads.ids[0] == marker_id and reads.shifts[0] == 0
+
+
+def _censored_reference(stack: np.ndarray, sr: np.ndarray, sc: np.ndarray, tmpl: np.ndarray, gram: np.ndarray,
+                        contrast: np.ndarray, sse: np.ndarray, saturated: float) -> np.ndarray:
+    """numpy reference of `_code_reader_kernels.censored_fits`: every (function,
+    pattern) pair completed, each pattern's best total."""
+    n_card = tmpl.shape[1]
+    sat = stack[:, sr, sc].astype(np.float64)  # (K, S, n_card + 1)
+    kk, tt = np.meshgrid(np.arange(sse.shape[0]), np.arange(sse.shape[1]), indexing="ij")
+    kk, tt = kk.ravel(), tt.ravel()
+    b = contrast[kk, tt]
+    v = tmpl[tt]
+    zu = np.einsum("mzc,mc->mz", gram[kk, :2, 2:2 + n_card], v)
+    zz = gram[kk, :2, :2] + 1e-9 * np.eye(2)
+    coef = np.linalg.solve(zz, (gram[kk, :2, -1] - b[:, None] * zu)[..., None])[..., 0]
+    pred = coef[:, :1] + coef[:, 1:] * sat[kk, :, n_card] + b[:, None] * np.einsum("msc,mc->ms", sat[kk, :, :n_card], v)
+    short = np.maximum(saturated - pred, 0.0)
+    total = (sse[kk, tt] + (short**2).sum(axis=1)).reshape(sse.shape)
+    return np.where(np.isfinite(sse), total, np.inf).min(axis=0)
+
+
+def test_the_compiled_censored_fit_finds_the_two_best_patterns_of_the_numpy_reference() -> None:
+    # A card whose white clips: the two best patterns, and their totals, as completing
+    # every (function, pattern) pair would give them.
+    from app.core.detection import _code_reader_kernels as compiled
+    from app.core.detection.code_reader import _card_patch, _patterns, isotropic_psfs, psf_set
+
+    px = 40
+    img = np.full((px + 40, px + 40), 200, np.uint8)
+    card = render_card(marker_layout(DEFAULT_FAMILY, 17), px).astype(np.float64)
+    img[20:20 + px, 20:20 + px] = np.clip(card * 1.3 + 10, 0, 255).astype(np.uint8)  # white clipped at 255
+    img = cv2.GaussianBlur(img, (0, 0), 0.7)
+    discs = np.asarray(marker_layout(DEFAULT_FAMILY, 17).discs, np.float64) * px - 0.5 + 20
+    tmpl, _, _ = _patterns(DEFAULT_FAMILY)
+    for kernels in (list(isotropic_psfs((0.45, 0.95))), list(psf_set())[:9]):
+        patch = _card_patch(Pyramid(img), homographies(discs[None])[0], 9, max(k.shape[0] for k in kernels) // 2,
+                            True, 32.0)
+        assert patch is not None and patch.saturated is not None and patch.saturated[0].size > 20
+        stack = np.stack([cv2.filter2D(patch.channels, -1, k, borderType=cv2.BORDER_REPLICATE) for k in kernels])
+        gram, sse, contrast, _ = compiled.pattern_fits(stack, patch.rows, patch.cols, patch.y, tmpl)
+        got, _ = compiled.censored_fits(stack, *patch.saturated, tmpl, gram, contrast, sse, 254.0)
+        want = _censored_reference(stack, *patch.saturated, tmpl, gram, contrast, sse, 254.0)
+        assert list(np.argsort(got)[:2]) == list(np.argsort(want)[:2])
+        np.testing.assert_allclose(np.sort(got)[:2], np.sort(want)[:2], rtol=1e-9)
