@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.sim import scenes  # noqa: E402
 from app.sim.truth import TruthCard, truth_cards  # noqa: E402
-from bench.peers import Detection, PeerDetector, all_detectors  # noqa: E402
+from bench.peers import CheckoutDetector, Detection, PeerDetector, all_detectors  # noqa: E402
 
 CONDITIONS = ("default", "far", "blur", "dark", "bright", "tiny", "grazing", "clutter")
 CLEAN = "clean"  # fronto-parallel, no degradation: the centre-accuracy row
@@ -67,6 +67,9 @@ BINS_DISC_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 GOOD_VIEW = (0.5, 3.0)
 #: A bin is reported with at least this many targets.
 MIN_BIN_TARGETS = 20
+#: The row names of our live detector and of the same detector in another checkout (`--baseline`).
+LIVE = "fidotrack (learned)"
+BASELINE = "fidotrack (learned), baseline"
 
 
 @dataclass
@@ -83,6 +86,7 @@ class Stats:
     sq_errors: list[float] = field(default_factory=list)  # squared point errors (px^2)
     clean_sq_errors: list[float] = field(default_factory=list)  # discs >= 8 px only
     ms: list[float] = field(default_factory=list)
+    stages: dict[str, list[float]] = field(default_factory=dict)  # ms by stage, for detectors that report them
     # (viewing-cosine bin, disc-size bin) -> [counted targets, correct]: `BINS_COS`, `BINS_DISC_PX`
     binned: dict[tuple[int, int], list[int]] = field(default_factory=dict)
 
@@ -116,7 +120,9 @@ def timed_detect(det: PeerDetector, image: np.ndarray, stats: Stats) -> list[Det
         if stats.errors == 1:
             print(f"\n{det.name}: {exc!r} (further errors counted only)", file=sys.stderr)
         found = []
-    stats.ms.append((time.perf_counter() - start) * 1e3)
+    stats.ms.append((time.perf_counter() - start) * 1e3 if det.last_ms is None else det.last_ms)
+    for stage, ms in det.last_stages.items():
+        stats.stages.setdefault(stage, []).append(ms)
     return found
 
 
@@ -335,7 +341,46 @@ def bin_table(results: dict[str, dict[str, Stats]], conditions: list[str]) -> st
     return "\n".join(lines)
 
 
-def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: list[str], speed: bool = True) -> str:
+#: The live detector's stages as `Detector.detect` times them, in the order they run.
+STAGES = ("candidates", "targets.group", "targets.verify", "targets.refine", "targets.identify",
+          "targets.complete", "targets", "detect")
+
+
+def speed_table(results: dict[str, dict[str, Stats]], ours: str, baseline: str, conditions: list[str]) -> str:
+    """Our live detector's median ms per condition against the baseline checkout's and
+    AprilTag (decimate 2), same frames, same run."""
+    april = next((n for n in results if n.startswith("AprilTag") and "decimate 2" in n), None)
+    lines = [f"| condition | this tree ms | baseline ms | this / baseline | AprilTag decimate 2 ms "
+             f"| this / AprilTag d2 |", "|---|---:|---:|---:|---:|---:|"]
+    for condition in [*conditions, EMPTY]:
+        if condition not in results[ours]:
+            continue
+        a, b = results[ours][condition].median_ms, results[baseline][condition].median_ms
+        t = results[april][condition].median_ms if april and condition in results[april] else float("nan")
+        lines.append(f"| {condition} | {_num(a)} | {_num(b)} | {_num(a / b)} | {_num(t)} | {_num(a / t)} |")
+    a, b = (float(np.median(np.concatenate([v.ms for v in results[n].values()]))) for n in (ours, baseline))
+    lines.append(f"| all frames | {_num(a)} | {_num(b)} | {_num(a / b)} | | |")
+    return "\n".join(lines)
+
+
+def stage_table(results: dict[str, dict[str, Stats]], names: list[str]) -> str:
+    """Median ms of each stage of the live detector over all frames, per detector that
+    reports its stages (this tree, the baseline)."""
+    names = [n for n in names if any(st.stages for st in results[n].values())]
+    lines = ["| stage | " + " | ".join(names) + (" | ratio |" if len(names) == 2 else " |"),
+             "|---|" + "---:|" * (len(names) + (len(names) == 2))]
+    for stage in STAGES:
+        meds = []
+        for n in names:
+            values = [v for st in results[n].values() for v in st.stages.get(stage, [])]
+            meds.append(float(np.median(values)) if values else float("nan"))
+        ratio = f" {_num(meds[0] / meds[1])} |" if len(names) == 2 and meds[1] > 0 else (" - |" if len(names) == 2 else "")
+        lines.append(f"| {stage} | " + " | ".join(_num(m) for m in meds) + " |" + ratio)
+    return "\n".join(lines)
+
+
+def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: list[str], speed: bool = True,
+                 baseline: str | None = None) -> str:
     """The detector's targets (rate against the peers, blur and low light, false and wrong
     ids, disc RMS, and with `speed` its time a frame), each PASS or FAIL."""
     s = results[ours]
@@ -373,6 +418,16 @@ def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: li
     median = float(np.median(ms)) if ms.size else float("nan")
     if speed:
         rows.append((f"median <= 4 ms/frame, one thread ({_num(median)} ms over all frames)", median <= 4.0))
+        april = next((n for n in results if n.startswith("AprilTag") and "decimate 2" in n), None)
+        if april:
+            slower = [c for c in conditions if c in results[april] and not s[c].median_ms < results[april][c].median_ms]
+            rows.append((f"median below AprilTag decimate 2 in every condition ({len(slower)} not"
+                         + (f": {', '.join(slower)}" if slower else "") + ")", not slower))
+        if baseline and baseline in results:
+            before = np.concatenate([np.asarray(v.ms) for v in results[baseline].values()])
+            b_med = float(np.median(before))
+            rows.append((f"median <= half the baseline's, same frames, same run ({_num(median)} vs {_num(b_med)} ms: "
+                         f"{_num(median / b_med)}x)", median <= 0.5 * b_med))
     lines = ["| target | |", "|---|---|"]
     lines += [f"| {text} | {'PASS' if ok else 'FAIL'} |" for text, ok in rows]
     return "\n".join(lines)
@@ -385,6 +440,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--conditions", default=",".join((*CONDITIONS, CLEAN)),
                         help=f"comma-separated scenario names (default {','.join((*CONDITIONS, CLEAN))})")
+    parser.add_argument("--baseline", default="", metavar="DIR",
+                        help="a checkout of another version of fidotrack: its live detector runs on the same frames "
+                        "(in a worker process) as the row 'fidotrack (learned), baseline'")
     parser.add_argument("--only", default="", help="run only detectors whose name contains one of these "
                         "comma-separated words (case-insensitive)")
     args = parser.parse_args(argv)
@@ -394,6 +452,8 @@ def main(argv: list[str] | None = None) -> None:
         if c not in scenes.SCENARIOS or c == EMPTY:
             parser.error(f"unknown condition {c!r}")
     detectors = all_detectors()
+    if args.baseline:
+        detectors.insert(1, CheckoutDetector(BASELINE, None, checkout=args.baseline))
     if args.only:
         words = [w.lower() for w in args.only.split(",") if w]
         detectors = [d for d in detectors if any(w in d.name.lower() for w in words)]
@@ -403,7 +463,12 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{name}: {reason}", file=sys.stderr)
 
     start = time.perf_counter()
-    results = run(detectors, conditions, args.frames, args.empty_frames, args.seed)
+    try:
+        results = run(detectors, conditions, args.frames, args.empty_frames, args.seed)
+    finally:
+        for det in detectors:
+            if isinstance(det, CheckoutDetector):
+                det.close()
     elapsed = time.perf_counter() - start
 
     table_conditions = [c for c in conditions if c != CLEAN]
@@ -427,10 +492,20 @@ def main(argv: list[str] | None = None) -> None:
         print("\n" + clean_table(results))
     if args.empty_frames and results:
         print("\n" + empty_table(results, unavailable))
-    ours = [d.name for d in detectors if d.name.startswith("fidotrack") and d.name in results]
+    ours = [d.name for d in detectors if d.name.startswith("fidotrack") and d.name in results and d.name != BASELINE]
+    baseline = BASELINE if BASELINE in results else None
+    if ours and ours[0] == LIVE:
+        if baseline:
+            print(f"\nThe live detector's median ms, this tree against the baseline ({args.baseline}) and AprilTag "
+                  "decimate 2, same frames, same run:\n")
+            print(speed_table(results, LIVE, baseline, table_conditions))
+        print("\nThe live detector stage by stage (median ms over all frames; the targets' sub-stages are "
+              "medians of their own, so they need not add up):\n")
+        print(stage_table(results, [LIVE, *([baseline] if baseline else [])]))
     for k, name in enumerate(ours):
         # the speed target is live tracking's: the survey's detector trades time for cards
-        print(f"\nTargets, {name}:\n\n" + target_check(results, name, table_conditions, speed=k == 0))
+        print(f"\nTargets, {name}:\n\n" + target_check(results, name, table_conditions, speed=k == 0,
+                                                           baseline=baseline))
     if not ours:
         print("\nOur detector: " + next((r for n, r in unavailable.items() if n.startswith("fidotrack")),
                                         "not selected"))

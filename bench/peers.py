@@ -47,8 +47,13 @@ from __future__ import annotations
 
 import functools
 import importlib
+import os
+import pickle
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -126,6 +131,11 @@ class PeerDetector:
     artwork: Callable[[int], CardArtwork] | None
     available: bool = True
     reason: str = ""
+    #: Milliseconds of the last `detect` by stage, for detectors that report them (ours).
+    last_stages: dict[str, float] = field(default_factory=dict, repr=False)
+    #: The last `detect`'s time as the detector measured it (a detector in another
+    #: process: its own clock, without the pipe); None: the caller's wall time stands.
+    last_ms: float | None = field(default=None, repr=False)
 
     def detect(self, gray: np.ndarray) -> list[Detection]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -219,8 +229,51 @@ class FidoDetector(PeerDetector):
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
         found = self._detect(gray)
+        self.last_stages = dict(getattr(found, "timing_ms", {}))
         found = getattr(found, "targets", found)  # Detector.detect -> Detection(targets=...)
         return [(int(t.id), np.asarray(t.discs, np.float64).reshape(4, 2)) for t in found]
+
+
+@dataclass
+class CheckoutDetector(PeerDetector):
+    """Our live detector as another checkout of fidotrack has it (`checkout`: its root
+    directory), run in a worker process (`bench/detector_worker.py` with that tree on
+    ``PYTHONPATH``) on the same frames: the benchmark's before-and-after row. The time
+    is the worker's own measure of ``Detector.detect``, as in-process rows measure it."""
+
+    checkout: str = ""
+    _worker: Any = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        root = Path(self.checkout).resolve()
+        if not (root / "app" / "core" / "detection" / "detector.py").is_file():
+            self.available, self.reason = False, f"n/a (no fidotrack detector under {root})"
+            return
+        worker = Path(__file__).resolve().with_name("detector_worker.py")
+        env = {**os.environ, "PYTHONPATH": str(root)}
+        self._worker = subprocess.Popen([sys.executable, str(worker)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        cwd=root, env=env)
+        try:
+            if pickle.load(self._worker.stdout) != "ready":
+                raise RuntimeError("unexpected greeting")
+        except Exception as exc:
+            self.close()
+            self.available, self.reason = False, f"n/a (worker did not start: {exc!r})"
+
+    def detect(self, gray: np.ndarray) -> list[Detection]:
+        pickle.dump(np.ascontiguousarray(gray, np.uint8), self._worker.stdin)
+        self._worker.stdin.flush()
+        found, self.last_ms, self.last_stages = pickle.load(self._worker.stdout)
+        return found
+
+    def close(self) -> None:
+        if self._worker is not None and self._worker.poll() is None:
+            try:
+                pickle.dump(None, self._worker.stdin)
+                self._worker.stdin.close()
+            except OSError:
+                pass
+            self._worker.wait(timeout=30)
 
 
 # --- plain threshold-and-blob baseline ------------------------------------------------
