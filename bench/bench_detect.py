@@ -35,6 +35,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import functools  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
@@ -49,6 +50,7 @@ from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from app.core.detection import candidates as cand  # noqa: E402
 from app.sim import scenes  # noqa: E402
 from app.sim.truth import TruthCard, truth_cards  # noqa: E402
 from bench.peers import CheckoutDetector, Detection, PeerDetector, all_detectors  # noqa: E402
@@ -124,6 +126,33 @@ def timed_detect(det: PeerDetector, image: np.ndarray, stats: Stats) -> list[Det
     for stage, ms in det.last_stages.items():
         stats.stages.setdefault(stage, []).append(ms)
     return found
+
+
+@functools.cache
+def _classifier() -> cand.DiscClassifier:
+    return cand.load_default_classifier()
+
+
+def floor_ms(gray: np.ndarray) -> dict[str, float]:
+    """What the candidate stage's design costs on this frame before any of its glue: the
+    pixel passes of stage 1a over the pyramid (`candidates.scan_levels`: pyramid,
+    morphology, scores, maxima) and the matrix products of the screen (every stage-1a
+    window) and of stage 2 (the accepted candidates' windows only), timed alone; the
+    windows are gathered and normalised untimed."""
+    classifier = _classifier()
+    start = time.perf_counter()
+    cand.scan_levels(gray, classifier.blob_thresholds)
+    passes = time.perf_counter() - start
+    s1 = cand.stage1_windows(gray, classifier, apply_screen=False)
+    _, kept, index = cand.detect_windows(gray, classifier)
+    windows = cand.normalise_windows(s1.windows)
+    accepted = cand.normalise_windows(kept.windows[index])
+    start = time.perf_counter()
+    cand.screen_scores(windows, classifier)
+    cand.nn_scores(accepted, classifier)
+    products = time.perf_counter() - start
+    return {"floor.stage1a": passes * 1e3, "floor.products": products * 1e3,
+            "floor.candidates": (passes + products) * 1e3}
 
 
 def view_bin(cosine: float, disc_px: float) -> tuple[int, int]:
@@ -213,6 +242,9 @@ def run(detectors: list[PeerDetector], conditions: list[str], n_frames: int, n_e
                     for det in dets:
                         stats = results[det.name][condition]
                         found = timed_detect(det, image, stats)
+                        if det.name == LIVE:
+                            for stage, ms in floor_ms(image).items():
+                                stats.stages.setdefault(stage, []).append(ms)
                         score_frame(stats, found, cards, clean=condition == CLEAN,
                                     cosines=[t.facing_cos for t in truth.targets])
                         stats.occluded += sum(1 for c, t in zip(cards, truth.targets, strict=True)
@@ -228,6 +260,9 @@ def run(detectors: list[PeerDetector], conditions: list[str], n_frames: int, n_e
                 for det in detectors:
                     stats = results[det.name][EMPTY]
                     found = timed_detect(det, image, stats)
+                    if det.name == LIVE:
+                        for stage, ms in floor_ms(image).items():
+                            stats.stages.setdefault(stage, []).append(ms)
                     score_frame(stats, found, [], clean=False)
                 bar.update()
     return results
@@ -343,7 +378,7 @@ def bin_table(results: dict[str, dict[str, Stats]], conditions: list[str]) -> st
 
 #: The live detector's stages as `Detector.detect` times them, in the order they run.
 STAGES = ("candidates", "targets.group", "targets.verify", "targets.refine", "targets.identify",
-          "targets.complete", "targets", "detect")
+          "targets.complete", "targets", "detect", "floor.stage1a", "floor.products", "floor.candidates")
 
 
 def speed_table(results: dict[str, dict[str, Stats]], ours: str, baseline: str, conditions: list[str]) -> str:
