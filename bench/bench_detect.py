@@ -133,6 +133,11 @@ def _classifier() -> cand.DiscClassifier:
     return cand.load_default_classifier()
 
 
+#: The floor's buffers, kept from frame to frame as the detector keeps its own (fresh
+#: image-sized buffers would add their page faults to the floor).
+_FLOOR_BUFFERS = cand._Workspace()
+
+
 def floor_ms(gray: np.ndarray) -> dict[str, float]:
     """What the candidate stage's design costs on this frame before any of its glue: the
     pixel passes of stage 1a over the pyramid (`candidates.scan_levels`: pyramid,
@@ -141,7 +146,7 @@ def floor_ms(gray: np.ndarray) -> dict[str, float]:
     windows are gathered and normalised untimed."""
     classifier = _classifier()
     start = time.perf_counter()
-    cand.scan_levels(gray, classifier.blob_thresholds)
+    cand.scan_levels(gray, classifier.blob_thresholds, _FLOOR_BUFFERS)
     passes = time.perf_counter() - start
     s1 = cand.stage1_windows(gray, classifier, apply_screen=False)
     _, kept, index = cand.detect_windows(gray, classifier)
