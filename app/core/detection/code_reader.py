@@ -72,7 +72,7 @@ PSF_SIGMAS_PX = (0.0, 0.35, 0.55, 0.75, 1.0, 1.3, 1.7)
 MOTION_LENGTHS_PX = (3.0, 5.5, 9.0)
 MOTION_ANGLES = 6
 MOTION_SIGMA_PX = 0.35
-#: At most this many cards of a frame get the full fit with the smears (about 5 ms each).
+#: At most this many cards of a frame get the full fit with the smears (about 3-4 ms each).
 SMEARED_MAX_READS = 3
 #: A card larger than this (side, pixels) is read on the pyramid level that brings it
 #: below: its cells are big enough there, and the fit stays small.
@@ -84,7 +84,7 @@ REGION_MARGIN = 0.06
 SATURATED_GREY = 254.0
 #: The quick check of a card whose code the nine samples name: two isotropic blurs, the
 #: card read on the pyramid level that keeps it under `QUICK_SIDE_PX`. A clear read of the
-#: same code settles the card at a fraction of the full fit's cost (about 0.3 ms against 5).
+#: same code settles the card at a fraction of the full fit's cost (about 0.2 ms against 3-4).
 QUICK_SIGMAS_PX = (0.45, 0.95)
 QUICK_SIDE_PX = 20.0
 QUICK_SUPERSAMPLE = 3
