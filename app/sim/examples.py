@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from app.core.geometry import Camera, Pose
-from app.sim.degrade import ThinLens
+from app.sim.degrade import DegradationRanges, ThinLens
 from app.sim.lighting import Lighting, ceiling_lamps
 from app.sim.render import TexturedQuad
 from app.sim.scenes import (
@@ -92,7 +92,7 @@ class RoomWalk:
     rng: np.random.Generator
     blur: list[ExposureBlur] | None = None
 
-    def frames(self, camera: Camera, degradation: str = "default", supersample: int = 2,
+    def frames(self, camera: Camera, degradation: str | DegradationRanges = "default", supersample: int = 2,
                video: PhoneVideo | None = None, follow_path: bool = False, lens: ThinLens | None = None,
                lighting: Lighting | None = None) -> Iterator[tuple[np.ndarray, FrameTruth]]:
         """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
@@ -102,8 +102,8 @@ class RoomWalk:
         ----------
         camera : Camera
             The camera that films the walk.
-        degradation : str, optional
-            Name of a degradation preset.
+        degradation : str or DegradationRanges, optional
+            Name of a degradation preset, or the ranges themselves.
         supersample : int, optional
             Samples per pixel along each axis.
         video : PhoneVideo, optional

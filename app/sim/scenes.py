@@ -1244,7 +1244,7 @@ def render_walk(
     camera: Camera,
     poses: Sequence[Pose],
     rng: np.random.Generator,
-    degradation: str = "default",
+    degradation: str | degrade.DegradationRanges = "default",
     supersample: int = 2,
     blur: Sequence[ExposureBlur] | None = None,
     video: PhoneVideo | None = None,
@@ -1263,8 +1263,8 @@ def render_walk(
         Map-to-camera transforms, one per frame (with `blur`, at mid-exposure).
     rng : numpy.random.Generator
         Draws each frame's degradation and noise, in frame order.
-    degradation : str, optional
-        Name of a `degrade.PRESETS` entry.
+    degradation : str or DegradationRanges, optional
+        Name of a `degrade.PRESETS` entry, or the ranges themselves.
     supersample : int, optional
         Samples per pixel along each axis (`render`).
     blur : sequence of ExposureBlur, optional
@@ -1297,7 +1297,7 @@ def render_walk(
     ValueError
         If `blur` does not give one blur per pose.
     """
-    ranges = degrade.PRESETS[degradation]
+    ranges = degradation if isinstance(degradation, degrade.DegradationRanges) else degrade.PRESETS[degradation]
     if blur is not None and len(blur) != len(poses):
         raise ValueError(f"blur gives {len(blur)} frames for {len(poses)} poses")
 
