@@ -37,6 +37,9 @@ Detectors:
   ids but our family has 60, so we use the first 60 of OpenCV's 4x4 list (ids 0-49 are
   exactly ``DICT_4X4_50``, 50-59 the next ones of ``DICT_4X4_100``) with the same
   ``maxCorrectionBits`` (1) as those dictionaries. Corners come as TL, TR, BR, BL.
+* Our live detector as another checkout of fidotrack has it (``CheckoutDetector``, the
+  benchmark's ``--baseline``): a worker process (``bench/detector_worker.py``) with that
+  tree on ``PYTHONPATH`` detects the same frames, and times ``Detector.detect`` itself.
 * The blob baseline: our own cards, disc candidates from an adaptive threshold and
   connected components (dark, filled, elliptical blobs) instead of the learned classifier,
   then the same ``assemble_targets`` grouping, verification and identification as our
