@@ -23,8 +23,15 @@ Measures, per detector and condition:
 * ms: median wall time per frame of ``detect`` on one thread (cv2.setNumThreads(1),
   BLAS/OpenMP at one thread, AprilTag nthreads=1). Rendering is not timed.
 
-Run: ``.venv/bin/python bench/bench_detect.py`` (~10 min on 2 cores), quick mode
-``--frames 30 --empty-frames 100``. Prints markdown tables; progress on stderr.
+With ``--baseline DIR`` (a checkout of another version) that tree's live detector runs
+on the same frames too (``peers.CheckoutDetector``), and the live detector's medians are
+compared per condition with it and with AprilTag at decimate 2, and stage by stage
+(``Detection.timing_ms``). The stage table's ``floor`` rows time, on the same frames,
+what the candidate stage's design costs before its glue: stage 1a's pixel passes
+(``candidates.scan_levels``) and the screen's and stage 2's matrix products.
+
+Run: ``.venv/bin/python bench/bench_detect.py [--baseline DIR]`` (~10 min on 2 cores),
+quick mode ``--frames 30 --empty-frames 100``. Prints markdown tables; progress on stderr.
 """
 
 from __future__ import annotations
