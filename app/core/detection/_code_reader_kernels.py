@@ -9,18 +9,20 @@ import numpy as np
 from numba import njit
 
 from app.core.detection._numba import JIT
+from app.core.geometry import _kernels as geometry_kernels
+
+
+_CENTRE = np.array([[0.5, 0.5]])
 
 
 @njit(**JIT)
 def card_side(h: np.ndarray) -> float:
     """The side (pixels) of a unit square at the card's centre under homography `h`
-    (card units to pixels): the square root of its Jacobian's determinant there."""
-    w = h[2, 0] * 0.5 + h[2, 1] * 0.5 + h[2, 2]
-    x = (h[0, 0] * 0.5 + h[0, 1] * 0.5 + h[0, 2]) / w
-    y = (h[1, 0] * 0.5 + h[1, 1] * 0.5 + h[1, 2]) / w
-    a, b = (h[0, 0] - x * h[2, 0]) / w, (h[0, 1] - x * h[2, 1]) / w
-    c, d = (h[1, 0] - y * h[2, 0]) / w, (h[1, 1] - y * h[2, 1]) / w
-    return np.sqrt(abs(a * d - b * c))
+    (card units to pixels): the square root of its Jacobian's determinant there (the
+    geometry's own compiled Jacobian; numba's cache keys on this file only, so after
+    changing that kernel, clear the cache)."""
+    j = geometry_kernels.jacobians(h.reshape(1, 3, 3), _CENTRE)[0, 0]
+    return np.sqrt(abs(j[0, 0] * j[1, 1] - j[0, 1] * j[1, 0]))
 
 
 @njit(**JIT)

@@ -177,7 +177,7 @@ def read_cards(pyr: Pyramid, hs: np.ndarray, family: str, psfs: Sequence[np.ndar
     -------
     CardReads
     """
-    hs = np.asarray(hs, np.float64).reshape(-1, 3, 3)
+    hs = np.ascontiguousarray(hs, np.float64).reshape(-1, 3, 3)
     p = hs.shape[0]
     out = CardReads(ok=np.zeros(p, bool), ids=np.zeros(p, np.intp), shifts=np.zeros(p, np.intp),
                     margin=np.zeros(p), fit=np.full(p, np.inf), psf=np.full(p, -1, np.intp),
