@@ -167,6 +167,12 @@ def floor_ms(gray: np.ndarray) -> dict[str, float]:
             "floor.candidates": (passes + products) * 1e3}
 
 
+def add_floor(stats: Stats, gray: np.ndarray) -> None:
+    """The frame's `floor_ms` into the live detector's stage timings."""
+    for stage, ms in floor_ms(gray).items():
+        stats.stages.setdefault(stage, []).append(ms)
+
+
 def view_bin(cosine: float, disc_px: float) -> tuple[int, int]:
     """The (viewing-cosine, disc-size) bin of a card (`BINS_COS`, `BINS_DISC_PX`)."""
     return (int(np.clip(np.searchsorted(BINS_COS, cosine, side="right") - 1, 0, len(BINS_COS) - 2)),
@@ -255,8 +261,7 @@ def run(detectors: list[PeerDetector], conditions: list[str], n_frames: int, n_e
                         stats = results[det.name][condition]
                         found = timed_detect(det, image, stats)
                         if det.name == LIVE:
-                            for stage, ms in floor_ms(image).items():
-                                stats.stages.setdefault(stage, []).append(ms)
+                            add_floor(stats, image)
                         score_frame(stats, found, cards, clean=condition == CLEAN,
                                     cosines=[t.facing_cos for t in truth.targets])
                         stats.occluded += sum(1 for c, t in zip(cards, truth.targets, strict=True)
@@ -273,8 +278,7 @@ def run(detectors: list[PeerDetector], conditions: list[str], n_frames: int, n_e
                     stats = results[det.name][EMPTY]
                     found = timed_detect(det, image, stats)
                     if det.name == LIVE:
-                        for stage, ms in floor_ms(image).items():
-                            stats.stages.setdefault(stage, []).append(ms)
+                        add_floor(stats, image)
                     score_frame(stats, found, [], clean=False)
                 bar.update()
     return results
@@ -300,6 +304,11 @@ def _apriltag_ms(results: dict[str, dict[str, Stats]], condition: str) -> float:
         if name.startswith("AprilTag") and "decimate 1" in name and condition in by_condition:
             return by_condition[condition].median_ms
     return float("nan")
+
+
+def _apriltag_d2(results: dict[str, dict[str, Stats]]) -> str | None:
+    """The row name of AprilTag at decimate 2, the speed target's peer (None if not run)."""
+    return next((n for n in results if n.startswith("AprilTag") and "decimate 2" in n), None)
 
 
 def best_peer(results: dict[str, dict[str, Stats]], condition: str) -> tuple[str, float]:
@@ -396,7 +405,7 @@ STAGES = ("candidates", "targets.group", "targets.verify", "targets.refine", "ta
 def speed_table(results: dict[str, dict[str, Stats]], ours: str, baseline: str, conditions: list[str]) -> str:
     """Our live detector's median ms per condition against the baseline checkout's and
     AprilTag (decimate 2), same frames, same run."""
-    april = next((n for n in results if n.startswith("AprilTag") and "decimate 2" in n), None)
+    april = _apriltag_d2(results)
     lines = [f"| condition | this tree ms | baseline ms | this / baseline | AprilTag decimate 2 ms "
              f"| this / AprilTag d2 |", "|---|---:|---:|---:|---:|---:|"]
     for condition in [*conditions, EMPTY]:
@@ -465,7 +474,7 @@ def target_check(results: dict[str, dict[str, Stats]], ours: str, conditions: li
     median = float(np.median(ms)) if ms.size else float("nan")
     if speed:
         rows.append((f"median <= 4 ms/frame, one thread ({_num(median)} ms over all frames)", median <= 4.0))
-        april = next((n for n in results if n.startswith("AprilTag") and "decimate 2" in n), None)
+        april = _apriltag_d2(results)
         if april:
             slower = [c for c in conditions if c in results[april] and not s[c].median_ms < results[april][c].median_ms]
             rows.append((f"median below AprilTag decimate 2 in every condition ({len(slower)} not"
