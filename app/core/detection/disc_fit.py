@@ -31,8 +31,31 @@ a blur of 0.6 px), with ``ink = Phi(-d / s)`` and
 
 Phi is the normal CDF: a blurred straight edge. It is exact for the card's edges and
 symmetric about the centre for the disc, so a misfit of the disc's profile does not
-move its centre. Gauss-Newton with Levenberg damping over the 8 parameters, with
-analytic derivatives, all discs of a frame at once.
+move its centre.
+
+A hand-held camera smears the frame over its exposure, often by more than a disc's
+width. An isotropic blur cannot fit a smeared card, and the compromise it makes, with
+the patch cut short on the code's side, moved the discs toward the card's middle: the
+card's image shrank and a survey of one-sided views put the card 3-8 mm too far
+(`bench/bench_disc_bias.py`). So the model is smeared too: ``ink`` and ``card`` are the
+means of the printed card's images shifted by ``t v`` for `_SMEAR_T` points t along a
+straight smear v (2 parameters, pixels; v = 0 is no smear). Pixels at the sensor's full
+scale are left out (the model has no clipping). Gauss-Newton with Levenberg damping over
+the 10 parameters, with analytic derivatives, all discs of a frame at once:
+
+1. each disc is started with a short smear in two directions (`SMEAR_START_ANGLES`: the
+   model is flat in v at v = 0) and goes on from the start that fits better;
+2. the card's smear, the median of its discs' (their signs aligned), is held for each of
+   its discs, which are fitted again: a disc's own smear is too loose a fit on a small
+   disc;
+3. a disc keeps the smeared fit only where it is clearly better than the unsmeared one
+   (`SMEAR_EVIDENCE`) and the smear is at least `MIN_SMEAR_PX` long; otherwise the
+   unsmeared fit (8 parameters) stands.
+
+The code's cells are not modelled. A smear carries their ink toward the disc, but
+leaving out the pixels it can reach cost more than it gained: the patch, cut short on
+the code's side, lost the disc's inner edge, and the survey's floor on the centre-loop
+walks went from 1.5-2.2 mm back to 1.9-4.2 mm (`bench/bench_survey_floor.py`).
 
 The result is the projection of the disc's centre: the homography's own, moved by the
 fitted delta.
@@ -64,6 +87,8 @@ ITERATIONS = 8
 #: A fit that moves a centre further than this (px) from the detector's is not trusted.
 MAX_SHIFT_PX = 0.5
 MIN_PIXELS = 12
+#: Pixels at or above this grey level are saturated (the white clipped).
+SATURATED_GREY = 254.0
 #: How far the patch reaches from the disc's centre toward the card's middle (card
 #: units; its edges are 0.175 away on the other side). The blurred disc's inner tail
 #: must be in it: at 0.2 discs of 2-3 px (minor semi-axis) under a blur of 0.8 px came
@@ -73,6 +98,23 @@ PATCH_INNER = 0.25
 #: limited by BEYOND_EDGE_PX.
 PATCH_OUTER = 0.2
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
+#: Where along the smear (fractions of its vector, centred) the printed card is sampled:
+#: a straight smear of the exposure is the mean of the card's images shifted along it.
+_SMEAR_T = (np.arange(5) + 0.5) / 5 - 0.5
+_NO_SMEAR = np.zeros(1)
+#: The longest smear fitted (px), the starts' length and directions, and the steps taken
+#: from each start before the best goes on.
+MAX_SMEAR_PX = 12.0
+SMEAR_START_PX = 2.0
+SMEAR_START_ANGLES = (0.0, np.pi / 2)
+START_ITERATIONS = 3
+#: Steps taken with the card's smear held.
+HELD_ITERATIONS = 5
+#: How much better (in units of the residual variance) the smeared fit must be than the
+#: unsmeared one, on the same pixels, for its smear and centre to be kept.
+SMEAR_EVIDENCE = 25.0
+#: ... and its smear at least this long (px): shorter ones the Gaussian blur takes well enough.
+MIN_SMEAR_PX = 3.0
 #: (4, 2) per disc and card axis, the direction (+1 or -1 in card units) of the disc's
 #: two nearby card edges.
 _OUTWARD = np.where(DISC_CENTRES < 0.5, -1.0, 1.0)
@@ -90,6 +132,8 @@ class DiscFit:
         Which discs were fitted.
     blur_px : ndarray, shape (T, 4)
         The fitted blur s in pixels; NaN where not fitted.
+    smear_px : ndarray, shape (T, 4, 2)
+        The fitted smear v in pixels (its sign is arbitrary); NaN where not fitted.
     rms : ndarray, shape (T, 4)
         The residual RMS in grey levels; NaN where not fitted.
     """
@@ -98,6 +142,7 @@ class DiscFit:
     fitted: np.ndarray
     blur_px: np.ndarray
     rms: np.ndarray
+    smear_px: np.ndarray
 
 
 def _disc_conics(hinv: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,6 +166,16 @@ def _disc_conics(hinv: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.n
     q = a2 / np.where(ok, k, 1.0)[:, None, None]
     ok &= (q[:, 0, 0] > 0) & (q[:, 0, 0] * q[:, 1, 1] - q[:, 0, 1] * q[:, 1, 0] > 0) & np.isfinite(m).all(axis=1)
     return m, q, ok
+
+
+def _pick(mask: np.ndarray, new: tuple, old: tuple) -> tuple:
+    """The model's parts (nested tuples and lists of arrays (n, ...)) of `new` where
+    `mask` (n,), else of `old`."""
+    if isinstance(new, np.ndarray):
+        return np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+    if isinstance(new, (tuple, list)):
+        return type(new)(_pick(mask, a, b) for a, b in zip(new, old, strict=True))
+    return new  # a scalar: the same in both
 
 
 def _image_lines(hinv: np.ndarray, lines_card: np.ndarray, inside: np.ndarray) -> np.ndarray:
@@ -162,8 +217,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     cur = np.array(discs, np.float64).reshape(-1, 4, 2)
     t = cur.shape[0]
     centres, fitted = cur.copy(), np.zeros((t, 4), bool)
-    blur, rms = np.full((t, 4), np.nan), np.full((t, 4), np.nan)
-    out = DiscFit(centres, fitted, blur, rms)
+    blur, rms, smear = np.full((t, 4), np.nan), np.full((t, 4), np.nan), np.full((t, 4, 2), np.nan)
+    out = DiscFit(centres, fitted, blur, rms, smear)
     if t == 0:
         return out
     card_hs = np.asarray(homographies, np.float64).reshape(t, 3, 3)
@@ -219,7 +274,8 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
         return line[:, 0, None] * pxf + line[:, 1, None] * pyf + line[:, 2, None]
 
     du_all, dv_all = dist(line_u), dist(line_v)
-    near_code = (dist(cline_u) > -CODE_MARGIN_PX) & (dist(cline_v) > -CODE_MARGIN_PX)
+    to_code_u, to_code_v = dist(cline_u), dist(cline_v)
+    near_code = (to_code_u > -CODE_MARGIN_PX) & (to_code_v > -CODE_MARGIN_PX)
     wx = hinv_r[:, 2, 0, None] * pxf + hinv_r[:, 2, 1, None] * pyf + hinv_r[:, 2, 2, None]
     ou = ((hinv_r[:, 0, 0, None] * pxf + hinv_r[:, 0, 1, None] * pyf + hinv_r[:, 0, 2, None]) / wx
           - cc[:, 0, None]) * sg[:, 0, None]
@@ -237,6 +293,10 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     px, py = take(pxf), take(pyf)
     du, dv = take(du_all), take(dv_all)
     vals = take(img[np.minimum(ys, h - 1), np.minimum(xs, w - 1)].astype(np.float64))
+    # A pixel at the sensor's full scale only says the card is at least that bright
+    # there: the model has no clipping, so such pixels are left out.
+    wgt *= vals < SATURATED_GREY
+    count = wgt.sum(1).astype(int)
 
     def disc_terms(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed distance d to the ellipse moved by delta, and its derivatives wrt
@@ -255,37 +315,59 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
         b = (qq - sq) / gn**3
         return d, -(a * g0 - b * h0), -(a * g1 - b * h1)  # d/d delta = -d/dx
 
-    def model(theta: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    nu, nv = line_u[:, :2], line_v[:, :2]  # (n, 2) the card edges' unit normals
+
+    def model(theta: np.ndarray, ts: np.ndarray = _SMEAR_T) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
         s = theta[:, 5:6]
-        d, dd0, dd1 = disc_terms(theta[:, :2])
-        zi, zu, zv = -d / s, -(du - theta[:, 6:7]) / s, -(dv - theta[:, 7:8]) / s
-        ink, pu, pv = ndtr(zi), ndtr(zu), ndtr(zv)
-        card = pu * pv
+        sm = theta[:, 8:10]  # the smear vector (px)
+        ink = np.zeros_like(px)
+        card = np.zeros_like(px)
+        keep = []
+        # the printed card smeared: the mean of its images shifted by t v along the smear
+        for t in ts:
+            d, dd0, dd1 = disc_terms(theta[:, :2] + t * sm)
+            shift_u = t * (nu * sm).sum(1, keepdims=True)  # the edge's distance moves by t n.v
+            shift_v = t * (nv * sm).sum(1, keepdims=True)
+            zi, zu, zv = -d / s, -(du - shift_u - theta[:, 6:7]) / s, -(dv - shift_v - theta[:, 7:8]) / s
+            ik, pu, pv = ndtr(zi), ndtr(zu), ndtr(zv)
+            ink += ik
+            card += pu * pv
+            keep.append((t, dd0, dd1, zi, zu, zv, pu, pv))
+        ink /= len(ts)
+        card /= len(ts)
         white, contrast, back = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
         step = white - back  # the card's edge, from background to white
         # The disc lies inside the card, so blurring the printed card is linear in its
         # parts: the blurred disc is subtracted, not multiplied by the blurred card.
         pred = back + card * step - contrast * ink
-        return pred, (d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, step)
+        return pred, (ink, card, step, keep, len(ts))
 
-    def jacobian(theta: np.ndarray, parts: tuple[np.ndarray, ...]) -> np.ndarray:
-        d, dd0, dd1, zi, zu, zv, ink, pu, pv, card, step = parts
+    def jacobian(theta: np.ndarray, parts: tuple) -> np.ndarray:
+        ink, card, step, keep, n_t = parts
         s = theta[:, 5:6]
         contrast = theta[:, 3:4]
-        gi = np.exp(-0.5 * zi * zi) * _INV_SQRT_2PI
-        gu = np.exp(-0.5 * zu * zu) * _INV_SQRT_2PI
-        gv = np.exp(-0.5 * zv * zv) * _INV_SQRT_2PI
-        dink = -contrast * gi  # d pred / d zi
-        jac = np.empty(px.shape + (8,))
-        jac[..., 0] = dink * (-dd0 / s)
-        jac[..., 1] = dink * (-dd1 / s)
+        jac = np.zeros(px.shape + (10,))
         jac[..., 2] = card
         jac[..., 3] = -ink
         jac[..., 4] = 1.0 - card
-        # z = -x / s -> dz/ds = -z / s
-        jac[..., 5] = (dink * (-zi) + step * (pv * gu * (-zu) + pu * gv * (-zv))) / s
-        jac[..., 6] = step * pv * gu / s  # dz_u / de_u = 1 / s
-        jac[..., 7] = step * pu * gv / s
+        scale = 1.0 / n_t
+        u0, u1, v0, v1 = nu[:, 0:1], nu[:, 1:2], nv[:, 0:1], nv[:, 1:2]
+        for t, dd0, dd1, zi, zu, zv, pu, pv in keep:
+            gi = np.exp(-0.5 * zi * zi) * _INV_SQRT_2PI
+            gu = np.exp(-0.5 * zu * zu) * _INV_SQRT_2PI
+            gv = np.exp(-0.5 * zv * zv) * _INV_SQRT_2PI
+            dink = -contrast * gi * scale  # d pred / d zi
+            eu, ev = step * pv * gu * scale, step * pu * gv * scale  # d pred / d zu, d zv
+            a0, a1 = dink * (-dd0 / s), dink * (-dd1 / s)
+            jac[..., 0] += a0
+            jac[..., 1] += a1
+            # z = -x / s -> dz/ds = -z / s
+            jac[..., 5] += (dink * (-zi) + eu * (-zu) + ev * (-zv)) / s
+            jac[..., 6] += eu / s  # dz_u / de_u = 1 / s
+            jac[..., 7] += ev / s
+            # the smear: the disc moves by t v, the edges' distances by t n.v
+            jac[..., 8] += t * (a0 + (eu * u0 + ev * v0) / s)
+            jac[..., 9] += t * (a1 + (eu * u1 + ev * v1) / s)
         return jac
 
     # Start: white and background from the pixels away from the disc, contrast from its
@@ -302,33 +384,78 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     black0 = np.where(use_b & (d0 < 0), vals, np.inf).min(1)
     black0 = np.where(np.isfinite(black0), black0, np.where(use_b, vals, np.inf).min(1))
     back0 = masked_mean(use_b & ((du > 0.0) | (dv > 0.0)), white0)
-    theta = np.zeros((n, 8))
-    theta[:, 2], theta[:, 3], theta[:, 4], theta[:, 5] = white0, np.maximum(white0 - black0, 1.0), back0, 0.6
-    pred, parts = model(theta)
-    cost = (wgt * (vals - pred) ** 2).sum(1)
-    lam = np.full(n, 1e-3)
-    eye = np.eye(8)[None]
-    for _ in range(ITERATIONS):
-        jac = jacobian(theta, parts)
-        jw = jac * wgt[..., None]
-        normal = jw.transpose(0, 2, 1) @ jac
-        rhs = (jw.transpose(0, 2, 1) @ (vals - pred)[..., None])[..., 0]
-        diag = np.maximum(np.einsum("dii->di", normal), 1e-9)
-        damped = normal + (lam[:, None] * diag)[:, :, None] * eye
-        try:
-            step = np.linalg.solve(damped, rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            break
-        trial = theta + step
-        trial[:, 5] = np.clip(trial[:, 5], 0.15, 5.0)
-        tpred, tparts = model(trial)
-        tcost = (wgt * (vals - tpred) ** 2).sum(1)
-        better = tcost <= cost
-        theta = np.where(better[:, None], trial, theta)
-        pred = np.where(better[:, None], tpred, pred)
-        parts = tuple(np.where(better[:, None], a, b) for a, b in zip(tparts, parts, strict=True))
-        cost = np.where(better, tcost, cost)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
+    theta0 = np.zeros((n, 10))
+    theta0[:, 2], theta0[:, 3], theta0[:, 4], theta0[:, 5] = white0, np.maximum(white0 - black0, 1.0), back0, 0.6
+
+    def solve(theta: np.ndarray, iterations: int, lam: np.ndarray | None = None, ts: np.ndarray = _SMEAR_T,
+              fixed_smear: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Levenberg-Marquardt from `theta`: the parameters, their cost and damping."""
+        pred, parts = model(theta, ts)
+        cost = (wgt * (vals - pred) ** 2).sum(1)
+        lam = np.full(n, 1e-3) if lam is None else lam
+        eye = np.eye(10)[None]
+        for _ in range(iterations):
+            jac = jacobian(theta, parts)
+            if fixed_smear:
+                jac[..., 8:10] = 0.0
+            jw = jac * wgt[..., None]
+            normal = jw.transpose(0, 2, 1) @ jac
+            rhs = (jw.transpose(0, 2, 1) @ (vals - pred)[..., None])[..., 0]
+            diag = np.maximum(np.einsum("dii->di", normal), 1e-9)
+            damped = normal + (lam[:, None] * diag)[:, :, None] * eye
+            try:
+                step = np.linalg.solve(damped, rhs[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                break
+            trial = theta + step
+            trial[:, 5] = np.clip(trial[:, 5], 0.15, 5.0)
+            length = np.hypot(trial[:, 8], trial[:, 9])
+            trial[:, 8:10] *= (np.minimum(length, MAX_SMEAR_PX) / np.maximum(length, 1e-12))[:, None]
+            tpred, tparts = model(trial, ts)
+            tcost = (wgt * (vals - tpred) ** 2).sum(1)
+            better = tcost <= cost
+            theta = np.where(better[:, None], trial, theta)
+            pred = np.where(better[:, None], tpred, pred)
+            parts = _pick(better, tparts, parts)
+            cost = np.where(better, tcost, cost)
+            lam = np.where(better, lam * 0.3, lam * 10.0)
+        return theta, cost, lam
+
+    # The model is the same for the smear v and -v, and flat in v at v = 0 (no step can
+    # leave it): each disc is started with a short smear in each of two directions and
+    # keeps the start that fits best after a few steps.
+    best: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    for angle in SMEAR_START_ANGLES:
+        start = theta0.copy()
+        start[:, 8:10] = SMEAR_START_PX * np.array([np.cos(angle), np.sin(angle)])
+        theta_k, cost_k, lam_k = solve(start, START_ITERATIONS)
+        if best is None:
+            best = (theta_k, cost_k, lam_k)
+        else:
+            better = cost_k < best[1]
+            best = (np.where(better[:, None], theta_k, best[0]), np.where(better, cost_k, best[1]),
+                    np.where(better, lam_k, best[2]))
+    assert best is not None
+    theta, cost, _ = solve(best[0], ITERATIONS - START_ITERATIONS, best[2])
+    # One smear per card: the discs' own, their signs aligned, medianed; each disc is
+    # fitted again with it held (a disc's own smear is too loose a fit on a small disc).
+    card_of = rows // 4
+    v = theta[:, 8:10].copy()
+    for card in np.unique(card_of):
+        mine = np.flatnonzero(card_of == card)
+        ref = v[mine[np.argmax(np.hypot(v[mine, 0], v[mine, 1]))]]
+        aligned = v[mine] * np.where(v[mine] @ ref < 0, -1.0, 1.0)[:, None]
+        v[mine] = np.median(aligned, axis=0)
+    held = theta.copy()
+    held[:, 8:10] = v
+    theta, cost, _ = solve(held, HELD_ITERATIONS, fixed_smear=True)
+    # A smear is kept only where it fits clearly better than none: two more parameters
+    # must not buy a worse centre on a sharp frame.
+    sharp, cost_sharp, _ = solve(theta0.copy(), ITERATIONS, ts=_NO_SMEAR)
+    dof = np.maximum(count - 10, 1)
+    smeared = ((cost_sharp - cost) > SMEAR_EVIDENCE * cost / dof) & (np.hypot(theta[:, 8], theta[:, 9]) >= MIN_SMEAR_PX)
+    theta = np.where(smeared[:, None], theta, sharp)
+    cost = np.where(smeared, cost, cost_sharp)
 
     good = ((np.hypot(theta[:, 0], theta[:, 1]) < MAX_SHIFT_PX) & (theta[:, 3] > 0) & (count >= MIN_PIXELS)
             & np.isfinite(theta).all(axis=1))
@@ -341,4 +468,5 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     fitted.reshape(-1)[sel] = True
     blur.reshape(-1)[sel] = theta[good, 5]
     rms.reshape(-1)[sel] = np.sqrt(cost[good] / count[good])
+    smear.reshape(-1, 2)[sel] = theta[good, 8:10]
     return out
