@@ -24,6 +24,7 @@ loads them from the cache) once, before the first frame.
 from app.core.detection import (
     _candidates_kernels,
     _code_reader_kernels,
+    _disc_fit_kernels,
     _completion_kernels,
     _grouping_kernels,
     _refinement_kernels,
@@ -57,5 +58,5 @@ def warm_up() -> None:
     """Compile (or load from the cache) every kernel the detector calls, so that the
     first frame does not pay for it. Call once at service start-up."""
     for kernels in (_candidates_kernels, _grouping_kernels, _verification_kernels, _refinement_kernels,
-                    _code_reader_kernels, _completion_kernels, _geometry_kernels):
+                    _code_reader_kernels, _disc_fit_kernels, _completion_kernels, _geometry_kernels):
         kernels.warm_up()

@@ -2,9 +2,10 @@
 
 Each stage keeps its kernels in a module beside it (`_candidates_kernels`,
 `_grouping_kernels`, `_verification_kernels`, `_refinement_kernels`,
-`_completion_kernels`). A kernel fuses a chain of small numpy/OpenCV calls into one loop
+`_completion_kernels`, `_code_reader_kernels`, `_disc_fit_kernels`). A kernel fuses a chain of small numpy/OpenCV calls into one loop
 with the same meaning and the same arithmetic: its results are bit-identical to the
-numpy/OpenCV references in the kernel tests. At 640x480 the detector would otherwise
+numpy/OpenCV references in the kernel tests (the disc fit's agree to rounding: its
+normal CDF is an approximation, `_disc_fit_kernels`). At 640x480 the detector would otherwise
 run ~40 whole-image OpenCV calls for stage 1a and a few hundred numpy calls on small
 arrays for the targets; each pass over an image-sized buffer, and each ~1 us of numpy
 call overhead, costs more than the arithmetic.

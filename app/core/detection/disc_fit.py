@@ -60,7 +60,8 @@ walks went from 1.5-2.2 mm back to 1.9-4.2 mm (`bench/bench_survey_floor.py`).
 The result is the projection of the disc's centre: the homography's own, moved by the
 fitted delta.
 
-Pure numpy/SciPy. No I/O.
+The model, its residuals and its normal equations are compiled (`_disc_fit_kernels`);
+the rest is numpy. No I/O.
 """
 
 from __future__ import annotations
@@ -68,8 +69,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
+from app.core.detection import _disc_fit_kernels as _kernels
 from app.core.geometry import apply_homographies
 from app.core.markers import CODE_ORIGIN, CODE_SIZE, DISC_CENTRES, DISC_RADIUS
 
@@ -97,7 +98,6 @@ PATCH_INNER = 0.25
 #: ... and toward its two nearby edges: past them (0.175), the edges' pixels being
 #: limited by BEYOND_EDGE_PX.
 PATCH_OUTER = 0.2
-_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 #: Where along the smear (fractions of its vector, centred) the printed card is sampled:
 #: a straight smear of the exposure is the mean of the card's images shifted along it.
 _SMEAR_T = (np.arange(5) + 0.5) / 5 - 0.5
@@ -166,16 +166,6 @@ def _disc_conics(hinv: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.n
     q = a2 / np.where(ok, k, 1.0)[:, None, None]
     ok &= (q[:, 0, 0] > 0) & (q[:, 0, 0] * q[:, 1, 1] - q[:, 0, 1] * q[:, 1, 0] > 0) & np.isfinite(m).all(axis=1)
     return m, q, ok
-
-
-def _pick(mask: np.ndarray, new: tuple, old: tuple) -> tuple:
-    """The model's parts (nested tuples and lists of arrays (n, ...)) of `new` where
-    `mask` (n,), else of `old`."""
-    if isinstance(new, np.ndarray):
-        return np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
-    if isinstance(new, (tuple, list)):
-        return type(new)(_pick(mask, a, b) for a, b in zip(new, old, strict=True))
-    return new  # a scalar: the same in both
 
 
 def _image_lines(hinv: np.ndarray, lines_card: np.ndarray, inside: np.ndarray) -> np.ndarray:
@@ -298,81 +288,23 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     wgt *= vals < SATURATED_GREY
     count = wgt.sum(1).astype(int)
 
-    def disc_terms(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Signed distance d to the ellipse moved by delta, and its derivatives wrt
-        delta (first-order distance ``(qq - sqrt(qq)) / |Q x|``, x = p - centre)."""
-        x0 = px - (mr[:, 0] + delta[:, 0])[:, None]
-        x1 = py - (mr[:, 1] + delta[:, 1])[:, None]
-        q00, q01, q11 = qr[:, 0, 0, None], qr[:, 0, 1, None], qr[:, 1, 1, None]
-        g0, g1 = q00 * x0 + q01 * x1, q01 * x0 + q11 * x1
-        qq = x0 * g0 + x1 * g1
-        sq = np.sqrt(qq) + 1e-12
-        gn = np.hypot(g0, g1) + 1e-12
-        d = (qq - sq) / gn
-        # d/dx of d: ((2 - 1/sq) Qx |Qx| - (qq - sq) Q Qx / |Qx|) / |Qx|^2
-        h0, h1 = q00 * g0 + q01 * g1, q01 * g0 + q11 * g1
-        a = (2.0 - 1.0 / sq) / gn
-        b = (qq - sq) / gn**3
-        return d, -(a * g0 - b * h0), -(a * g1 - b * h1)  # d/d delta = -d/dx
+    nu, nv = np.ascontiguousarray(line_u[:, :2]), np.ascontiguousarray(line_v[:, :2])  # the edges' unit normals
+    px, py, du, dv, vals = (np.ascontiguousarray(a) for a in (px, py, du, dv, vals))
+    mr, qr = np.ascontiguousarray(mr), np.ascontiguousarray(qr)
 
-    nu, nv = line_u[:, :2], line_v[:, :2]  # (n, 2) the card edges' unit normals
-
-    def model(theta: np.ndarray, ts: np.ndarray = _SMEAR_T) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        s = theta[:, 5:6]
-        sm = theta[:, 8:10]  # the smear vector (px)
-        ink = np.zeros_like(px)
-        card = np.zeros_like(px)
-        keep = []
-        # the printed card smeared: the mean of its images shifted by t v along the smear
-        for t in ts:
-            d, dd0, dd1 = disc_terms(theta[:, :2] + t * sm)
-            shift_u = t * (nu * sm).sum(1, keepdims=True)  # the edge's distance moves by t n.v
-            shift_v = t * (nv * sm).sum(1, keepdims=True)
-            zi, zu, zv = -d / s, -(du - shift_u - theta[:, 6:7]) / s, -(dv - shift_v - theta[:, 7:8]) / s
-            ik, pu, pv = ndtr(zi), ndtr(zu), ndtr(zv)
-            ink += ik
-            card += pu * pv
-            keep.append((t, dd0, dd1, zi, zu, zv, pu, pv))
-        ink /= len(ts)
-        card /= len(ts)
-        white, contrast, back = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
-        step = white - back  # the card's edge, from background to white
-        # The disc lies inside the card, so blurring the printed card is linear in its
-        # parts: the blurred disc is subtracted, not multiplied by the blurred card.
-        pred = back + card * step - contrast * ink
-        return pred, (ink, card, step, keep, len(ts))
-
-    def jacobian(theta: np.ndarray, parts: tuple) -> np.ndarray:
-        ink, card, step, keep, n_t = parts
-        s = theta[:, 5:6]
-        contrast = theta[:, 3:4]
-        jac = np.zeros(px.shape + (10,))
-        jac[..., 2] = card
-        jac[..., 3] = -ink
-        jac[..., 4] = 1.0 - card
-        scale = 1.0 / n_t
-        u0, u1, v0, v1 = nu[:, 0:1], nu[:, 1:2], nv[:, 0:1], nv[:, 1:2]
-        for t, dd0, dd1, zi, zu, zv, pu, pv in keep:
-            gi = np.exp(-0.5 * zi * zi) * _INV_SQRT_2PI
-            gu = np.exp(-0.5 * zu * zu) * _INV_SQRT_2PI
-            gv = np.exp(-0.5 * zv * zv) * _INV_SQRT_2PI
-            dink = -contrast * gi * scale  # d pred / d zi
-            eu, ev = step * pv * gu * scale, step * pu * gv * scale  # d pred / d zu, d zv
-            a0, a1 = dink * (-dd0 / s), dink * (-dd1 / s)
-            jac[..., 0] += a0
-            jac[..., 1] += a1
-            # z = -x / s -> dz/ds = -z / s
-            jac[..., 5] += (dink * (-zi) + eu * (-zu) + ev * (-zv)) / s
-            jac[..., 6] += eu / s  # dz_u / de_u = 1 / s
-            jac[..., 7] += ev / s
-            # the smear: the disc moves by t v, the edges' distances by t n.v
-            jac[..., 8] += t * (a0 + (eu * u0 + ev * v0) / s)
-            jac[..., 9] += t * (a1 + (eu * u1 + ev * v1) / s)
-        return jac
+    def normal_equations(theta: np.ndarray, ts: np.ndarray, with_jacobian: bool = True
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return _kernels.normal_equations(px, py, wgt, vals, du, dv, mr, qr, nu, nv, np.ascontiguousarray(theta), ts,
+                                         with_jacobian)
 
     # Start: white and background from the pixels away from the disc, contrast from its
     # darkest pixel, the detector's centre, a typical blur.
-    d0 = disc_terms(np.zeros((n, 2)))[0]
+    # The signed distance (px, first order) of each pixel to the disc's ellipse.
+    x0, x1 = px - mr[:, 0, None], py - mr[:, 1, None]
+    g0 = qr[:, 0, 0, None] * x0 + qr[:, 0, 1, None] * x1
+    g1 = qr[:, 0, 1, None] * x0 + qr[:, 1, 1, None] * x1
+    qq = x0 * g0 + x1 * g1
+    d0 = (qq - np.sqrt(qq)) / (np.hypot(g0, g1) + 1e-12)
     use_b = wgt > 0
 
     def masked_mean(mask: np.ndarray, default: np.ndarray) -> np.ndarray:
@@ -390,17 +322,14 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
     def solve(theta: np.ndarray, iterations: int, lam: np.ndarray | None = None, ts: np.ndarray = _SMEAR_T,
               fixed_smear: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Levenberg-Marquardt from `theta`: the parameters, their cost and damping."""
-        pred, parts = model(theta, ts)
-        cost = (wgt * (vals - pred) ** 2).sum(1)
         lam = np.full(n, 1e-3) if lam is None else lam
         eye = np.eye(10)[None]
+        cost = normal_equations(theta, ts, False)[0]
         for _ in range(iterations):
-            jac = jacobian(theta, parts)
+            _, normal, rhs = normal_equations(theta, ts)
             if fixed_smear:
-                jac[..., 8:10] = 0.0
-            jw = jac * wgt[..., None]
-            normal = jw.transpose(0, 2, 1) @ jac
-            rhs = (jw.transpose(0, 2, 1) @ (vals - pred)[..., None])[..., 0]
+                normal[:, 8:10, :] = normal[:, :, 8:10] = 0.0
+                rhs[:, 8:10] = 0.0
             diag = np.maximum(np.einsum("dii->di", normal), 1e-9)
             damped = normal + (lam[:, None] * diag)[:, :, None] * eye
             try:
@@ -411,12 +340,9 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
             trial[:, 5] = np.clip(trial[:, 5], 0.15, 5.0)
             length = np.hypot(trial[:, 8], trial[:, 9])
             trial[:, 8:10] *= (np.minimum(length, MAX_SMEAR_PX) / np.maximum(length, 1e-12))[:, None]
-            tpred, tparts = model(trial, ts)
-            tcost = (wgt * (vals - tpred) ** 2).sum(1)
+            tcost = normal_equations(trial, ts, False)[0]
             better = tcost <= cost
             theta = np.where(better[:, None], trial, theta)
-            pred = np.where(better[:, None], tpred, pred)
-            parts = _pick(better, tparts, parts)
             cost = np.where(better, tcost, cost)
             lam = np.where(better, lam * 0.3, lam * 10.0)
         return theta, cost, lam

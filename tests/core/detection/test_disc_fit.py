@@ -1,6 +1,7 @@
 """Fitted disc centres (app.core.detection.disc_fit) on the bench room's walk: closer to the
 truth than the detector's centroids, big discs and discs at the image's border left
-alone, and the detector's `fit_discs` option."""
+alone, the detector's `fit_discs` option, and the compiled model against its numpy
+reference."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.special import ndtr
 
+from app.core.detection import _disc_fit_kernels as _kernels
 from app.core.detection.candidates import load_default_classifier
 from app.core.detection.detector import Detector
 from app.core.detection.disc_fit import FIT_MAX_RADIUS_PX, fit_disc_centres
@@ -128,3 +131,75 @@ def test_a_sharp_card_is_fitted_as_sharp() -> None:
     assert fit.fitted.all()
     assert abs(_radial(fit.centres[0], true)) < 0.006
     assert np.hypot(*fit.smear_px[0].T).max() < 1.0
+
+
+def _reference(px: np.ndarray, py: np.ndarray, du: np.ndarray, dv: np.ndarray, centres: np.ndarray,
+               shapes: np.ndarray, nu: np.ndarray, nv: np.ndarray, theta: np.ndarray, ts: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The smeared model and its Jacobian as numpy array operations: (n, K) and (n, K, 10)."""
+    s, sm = theta[:, 5:6], theta[:, 8:10]
+    white, contrast, back = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
+    step = white - back
+    q00, q01, q11 = shapes[:, 0, 0, None], shapes[:, 0, 1, None], shapes[:, 1, 1, None]
+    ink, card = np.zeros_like(px), np.zeros_like(px)
+    jac = np.zeros(px.shape + (10,))
+    for t in ts:
+        x0 = px - (centres[:, 0] + theta[:, 0] + t * sm[:, 0])[:, None]
+        x1 = py - (centres[:, 1] + theta[:, 1] + t * sm[:, 1])[:, None]
+        g0, g1 = q00 * x0 + q01 * x1, q01 * x0 + q11 * x1
+        qq = x0 * g0 + x1 * g1
+        sq, gn = np.sqrt(qq) + 1e-12, np.hypot(g0, g1) + 1e-12
+        d = (qq - sq) / gn
+        h0, h1 = q00 * g0 + q01 * g1, q01 * g0 + q11 * g1
+        a, b = (2.0 - 1.0 / sq) / gn, (qq - sq) / gn**3
+        dd0, dd1 = -(a * g0 - b * h0), -(a * g1 - b * h1)
+        zi = -d / s
+        zu = -(du - t * (nu * sm).sum(1, keepdims=True) - theta[:, 6:7]) / s
+        zv = -(dv - t * (nv * sm).sum(1, keepdims=True) - theta[:, 7:8]) / s
+        pu, pv = ndtr(zu), ndtr(zv)
+        ink += ndtr(zi) / len(ts)
+        card += pu * pv / len(ts)
+        gi, gu, gv = (np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi) for z in (zi, zu, zv))
+        dink = -contrast * gi / len(ts)
+        eu, ev = step * pv * gu / len(ts), step * pu * gv / len(ts)
+        a0, a1 = dink * (-dd0 / s), dink * (-dd1 / s)
+        jac[..., 0] += a0
+        jac[..., 1] += a1
+        jac[..., 5] += (dink * (-zi) + eu * (-zu) + ev * (-zv)) / s
+        jac[..., 6] += eu / s
+        jac[..., 7] += ev / s
+        jac[..., 8] += t * (a0 + (eu * nu[:, 0:1] + ev * nv[:, 0:1]) / s)
+        jac[..., 9] += t * (a1 + (eu * nu[:, 1:2] + ev * nv[:, 1:2]) / s)
+    jac[..., 2], jac[..., 3], jac[..., 4] = card, -ink, 1.0 - card
+    return back + card * step - contrast * ink, jac
+
+
+def test_the_compiled_model_and_its_normal_equations_match_the_numpy_reference() -> None:
+    rng = np.random.default_rng(3)
+    n, k = 6, 200
+    centres = rng.uniform(10, 20, (n, 2))
+    px, py = centres[:, 0:1] + rng.uniform(-6, 6, (n, k)), centres[:, 1:2] + rng.uniform(-6, 6, (n, k))
+    axes = rng.uniform(2, 5, (n, 2))
+    angle = rng.uniform(0, np.pi, n)
+    rot = np.stack([np.c_[np.cos(angle), -np.sin(angle)], np.c_[np.sin(angle), np.cos(angle)]], axis=1)
+    shapes = rot @ (np.eye(2) / axes[:, None, :] ** 2) @ rot.transpose(0, 2, 1)
+    normals = rng.normal(size=(n, 2, 2))
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    nu, nv = np.ascontiguousarray(normals[:, 0]), np.ascontiguousarray(normals[:, 1])
+    du, dv = rng.uniform(-8, 1, (n, k)), rng.uniform(-8, 1, (n, k))
+    theta = np.c_[rng.normal(0, 0.2, (n, 2)), rng.uniform(180, 230, n), rng.uniform(100, 150, n),
+                  rng.uniform(20, 60, n), rng.uniform(0.4, 1.5, n), rng.normal(0, 0.3, (n, 2)),
+                  rng.normal(0, 3, (n, 2))]
+    vals = rng.uniform(0, 255, (n, k))
+    wgt = (rng.random((n, k)) < 0.9).astype(np.float64)
+    for ts in (np.zeros(1), (np.arange(5) + 0.5) / 5 - 0.5):
+        pred, jac = _reference(px, py, du, dv, centres, shapes, nu, nv, theta, ts)
+        r = vals - pred
+        cost, normal, rhs = _kernels.normal_equations(px, py, wgt, vals, du, dv, centres, shapes, nu, nv, theta, ts,
+                                                      True)
+        np.testing.assert_allclose(cost, (wgt * r**2).sum(1), rtol=1e-6)
+        jw = jac * wgt[..., None]
+        np.testing.assert_allclose(normal, jw.transpose(0, 2, 1) @ jac, rtol=1e-5, atol=1e-6 * np.abs(normal).max())
+        np.testing.assert_allclose(rhs, (jw * r[..., None]).sum(1), rtol=1e-5, atol=1e-6 * np.abs(rhs).max())
+        only_cost = _kernels.normal_equations(px, py, wgt, vals, du, dv, centres, shapes, nu, nv, theta, ts, False)
+        np.testing.assert_array_equal(only_cost[0], cost)
