@@ -55,6 +55,10 @@ from app.core.survey.state import Reconstruction, Tracks, project_frame
 #: Huber's threshold (whitened) while the map grows: loose, since residuals of pixels are
 #: then the unrefined lens's and poses' error, not outliers.
 GROWTH_LOSS_SCALE = 100.0
+#: The longest lag (observations of one point) summed in `correlation_time`, and the
+#: fewest pairs of observations a lag's correlation is estimated from.
+MAX_CORRELATION_LAG = 60
+MIN_CORRELATION_PAIRS = 50
 
 
 class ReducedSolver(str, Enum):
@@ -86,6 +90,9 @@ class BundleInfo:
     feature_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (K, 2) px
     feature_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) the loss's weight / sigma^2
     feature_rms_px: float = float("nan")  # reprojection RMS (2D) of the feature observations used
+    # How many of a disc's observations, consecutive in time, count as one independent
+    # measurement in the covariance (`correlation_time`); 1 without a covariance.
+    correlation_time: float = 1.0
 
     def intrinsics_std(self) -> np.ndarray | None:
         """Standard deviations of the adjusted intrinsics, from the marginal covariance.
@@ -181,6 +188,7 @@ class _Problem:
     camera: Camera  # the camera at the start (kept when the intrinsics are held)
     free_intrinsics: bool
     obs: np.ndarray  # (N,) observations, sorted by frame
+    frame: np.ndarray  # (N,) each observation's frame
     frames: np.ndarray  # (C,) frames with an observation
     points: np.ndarray  # (P,) points with an observation
     op: np.ndarray  # (N,) each observation's point, local index
@@ -235,7 +243,8 @@ def _problem(rec: Reconstruction, tracks: Tracks, use: np.ndarray, free_intrinsi
             prior_len = np.tile(PAIR_UNITS * unit, len(whole))
     precision = tracks.precision[obs]
     return _Problem(
-        camera=rec.camera, free_intrinsics=free_intrinsics, obs=obs, frames=frames, points=points, op=op,
+        camera=rec.camera, free_intrinsics=free_intrinsics, obs=obs, frame=tracks.frame[obs], frames=frames,
+        points=points, op=op,
         uv=tracks.uv[obs], slices=slices,
         ycols=[np.r_[np.arange(n_intr), (n_intr + 3 * op[s][:, None] + np.arange(3)).ravel()] for s in slices],
         held=int(np.argmax(counts)) if len(counts) else -1, n_intr=n_intr, n_y=n_intr + 3 * len(points),
@@ -260,6 +269,58 @@ def _weights(p: _Problem, r: np.ndarray) -> np.ndarray:
     """IRLS: each observation's precision times Huber's weight of its whitened error."""
     e = np.linalg.norm(r, axis=1) * p.root_precision
     return p.precision * np.where(e <= p.loss_scale, 1.0, p.loss_scale / np.maximum(e, 1e-300))
+
+
+def correlation_time(point: np.ndarray, frame: np.ndarray, whitened: np.ndarray, max_lag: int = MAX_CORRELATION_LAG
+                     ) -> float:
+    """How many consecutive observations of a point carry one independent measurement's
+    worth of information: the integrated autocorrelation time of the residuals along
+    each point's observations in frame order.
+
+    The covariance of a least-squares fit counts every observation as independent. A
+    video's disc centres are not: the same blur, the same compression blocks copied
+    along motion vectors and the same lighting move a disc's centre alike in the frames
+    that follow, so n observations of it are worth about n / tau independent ones, and
+    the covariance is tau times too small. With rho_m the correlation of the residuals m
+    observations apart (both axes pooled), ``tau = 1 + 2 sum_m rho_m``, summed while
+    rho_m stays positive (the initial positive sequence: beyond it the estimates are
+    noise).
+
+    Parameters
+    ----------
+    point : (N,) ndarray of int
+        Each observation's point.
+    frame : (N,) ndarray of int
+        Each observation's frame.
+    whitened : (N, 2) ndarray
+        The residuals, each divided by its expected error.
+    max_lag : int
+        The longest lag summed, in observations.
+
+    Returns
+    -------
+    float
+        tau, at least 1.
+    """
+    order = np.lexsort((frame, point))
+    pt, e = np.asarray(point)[order], np.asarray(whitened, np.float64)[order]
+    tau = 1.0
+    for lag in range(1, min(max_lag, len(pt) - 1) + 1):
+        same = pt[lag:] == pt[:-lag]
+        if same.sum() < MIN_CORRELATION_PAIRS:
+            break
+        a, b = e[lag:][same], e[:-lag][same]
+        rho = float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-300))
+        if not rho > 0.0:
+            break
+        tau += 2.0 * rho
+    return tau
+
+
+def _disc_correlation_time(p: _Problem, r: np.ndarray) -> float:
+    """`correlation_time` of the disc observations' residuals, each whitened by its
+    weight (its precision and the robust loss's: an outlier must not set it)."""
+    return correlation_time(p.op, p.frame, r * np.sqrt(_weights(p, r))[:, None])
 
 
 def _prior_residuals(p: _Problem, X: np.ndarray) -> np.ndarray:
@@ -831,9 +892,10 @@ def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObs
         step = max(np.abs(dx).max() if len(dx) else 0.0, np.abs(dXf).max() if dXf.size else 0.0)
         if gain < tolerance * max(cost, 1e-12) or step < 1e-12:
             break
-    covariance = None
+    covariance, tau = None, 1.0
     if with_covariance and len(p.points):
-        covariance = _feature_covariance(p, fp, joint, sp, intr, cams, X, Xf, r, rf)
+        tau = _disc_correlation_time(p, r)
+        covariance = _feature_covariance(p, fp, joint, sp, intr, cams, X, Xf, r, rf) * tau
     out = Reconstruction(_camera_of(p, intr), rec.rvec.copy(), rec.tvec.copy(), rec.X.copy())
     out.rvec[joint.frames], out.tvec[joint.frames] = cams[:, :3], cams[:, 3:]
     out.X[p.points] = X
@@ -842,7 +904,7 @@ def _adjust_with_features(rec: Reconstruction, p: _Problem, features: FeatureObs
     info = BundleInfo(
         iterations=iterations, cost=cost, rms_px=_rms(r), obs=p.obs, points=p.points, n_intr=ni, residuals=r,
         weights=_weights(p, r), covariance=covariance, held_frame=int(joint.frames[joint.held]),
-        feature_X=adjusted, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
+        correlation_time=tau, feature_X=adjusted, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
         feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
     )
     return out, info
@@ -928,7 +990,7 @@ def _fit_the_other_frames(rec: Reconstruction, info: BundleInfo, p: _Problem, fe
     out = BundleInfo(
         iterations=info.iterations, cost=cost, rms_px=_rms(r), obs=p.obs, points=p.points, n_intr=info.n_intr,
         residuals=r, weights=_weights(p, r), covariance=info.covariance, held_frame=info.held_frame,
-        feature_X=Xf, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
+        correlation_time=info.correlation_time, feature_X=Xf, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
         feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
     )
     return rec, out
@@ -1186,7 +1248,7 @@ def bundle_adjust(
         step = max(np.abs(dy).max() if len(dy) else 0.0, np.abs(dc).max() if dc.size else 0.0)
         if gain < tolerance * max(cost, 1e-12) or step < 1e-12:
             break
-    covariance = None
+    covariance, tau = None, 1.0
     if with_covariance and len(p.points):
         # Marginal covariance of intrinsics + points: inverse of the undamped reduced
         # system; a pseudo-inverse drops what the gauge leaves free (scale w/o prior).
@@ -1195,13 +1257,16 @@ def bundle_adjust(
         dof = max(2 * len(p.obs) - len(cams) * 6 - p.n_y + 6, 1)
         w = _weights(p, r)
         sigma2 = float((w[:, None] * r**2).sum() / dof)
-        covariance = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * sigma2
+        tau = _disc_correlation_time(p, r)
+        # ... and the observations' correlation in time.
+        covariance = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * (sigma2 * tau)
     out = Reconstruction(_camera_of(p, intr), rec.rvec.copy(), rec.tvec.copy(), rec.X.copy())
     out.rvec[p.frames], out.tvec[p.frames] = cams[:, :3], cams[:, 3:]
     out.X[p.points] = X
     info = BundleInfo(
         iterations=iterations, cost=cost, rms_px=float(np.sqrt((r**2).sum(axis=1).mean())), obs=p.obs,
         points=p.points, n_intr=p.n_intr, residuals=r, weights=_weights(p, r), covariance=covariance,
+        correlation_time=tau,
         held_frame=int(p.frames[p.held]), feature_X=None if feature_X is None else feature_X.copy(),
     )
     return out, info

@@ -75,6 +75,9 @@ class SurveyResult:
     timing_s: dict[str, float] = field(default_factory=dict)
     intrinsics_std: np.ndarray | None = None  # (5,) 1 sigma of [f, cx, cy, k1, k2] (px, px, px, -, -); None: fixed
     map_warnings: list[MapWarning] = field(default_factory=list)  # the warnings that name cards, typed
+    # Consecutive observations of a disc worth one independent one (`bundle.correlation_time`):
+    # the covariance behind intrinsics_std and the discs' std_m is widened by it.
+    correlation_time: float = 1.0
 
     @property
     def n_registered(self) -> int:
@@ -291,5 +294,5 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
         n_observations=len(info.obs), n_rejected_views=surveyed.n_rejected,
         scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s, intrinsics_std=lens_std,
-        map_warnings=advice,
+        map_warnings=advice, correlation_time=info.correlation_time,
     )

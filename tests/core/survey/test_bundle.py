@@ -7,11 +7,13 @@ import dataclasses
 
 import cv2
 import numpy as np
+import pytest
 
-from app.core.survey.bundle import bundle_adjust, camera_from_intrinsics
+from app.core.geometry.alignment import similarity_from_points
+from app.core.survey.bundle import bundle_adjust, camera_from_intrinsics, correlation_time
 from app.core.survey.cards import PAIR_UNITS, PAIRS
 from app.core.survey.points import FeatureObservations, RobustLoss
-from app.core.survey.state import Reconstruction, SurveyState
+from app.core.survey.state import Reconstruction, SurveyState, Tracks
 from app.sim.examples import ExampleRoom
 
 from .conftest import wall_points
@@ -334,3 +336,60 @@ def test_the_step_is_that_of_the_whole_problem(true_state: SurveyState, room: Ex
     np.testing.assert_allclose(out.tvec[free], expected.tvec[free], atol=1e-6 * scale)
     np.testing.assert_allclose(info.feature_X[f_points], expected_points[f_points], atol=1e-6 * scale)
     np.testing.assert_allclose(out.camera.fx, intr0[0] + step[0], atol=1e-6 * abs(step[0]))
+
+
+# --- errors shared by consecutive frames -------------------------------------------------
+
+
+def _drifting_errors(tracks: Tracks, rng: np.random.Generator, sigma_px: float, rho: float) -> np.ndarray:
+    """(M, 2) errors of ``sigma_px`` per axis that each disc carries from one frame to the
+    next with correlation ``rho`` (as a video's blur and compression do)."""
+    err = rng.normal(0, sigma_px, tracks.uv.shape)
+    order = np.lexsort((tracks.frame, tracks.point))
+    point = tracks.point[order]
+    for i in range(1, len(order)):
+        if point[i] == point[i - 1]:
+            err[order[i]] = rho * err[order[i - 1]] + np.sqrt(1 - rho**2) * err[order[i]]
+    return err
+
+
+def test_the_correlation_time_of_a_drifting_error() -> None:
+    rng = np.random.default_rng(0)
+    point = np.repeat(np.arange(40), 200)
+    frame = np.tile(np.arange(200), 40)
+    white = rng.normal(size=(len(point), 2))
+    assert 0.9 < correlation_time(point, frame, white) < 1.2
+    for rho in (0.5, 0.8):
+        drift = white.copy().reshape(40, 200, 2)
+        for k in range(1, 200):
+            drift[:, k] = rho * drift[:, k - 1] + np.sqrt(1 - rho**2) * drift[:, k]
+        expected = (1 + rho) / (1 - rho)
+        assert 0.75 * expected < correlation_time(point, frame, drift.reshape(-1, 2)) < 1.25 * expected
+    # The order of the observations does not matter: each point's are taken in frame order.
+    shuffled = rng.permutation(len(point))
+    assert correlation_time(point[shuffled], frame[shuffled], drift.reshape(-1, 2)[shuffled]) == pytest.approx(
+        correlation_time(point, frame, drift.reshape(-1, 2)))
+
+
+def test_errors_shared_by_consecutive_frames_widen_the_covariance_to_cover_them(true_state: SurveyState) -> None:
+    exact = true_state.tracks.uv.copy()
+    truth = true_state.reconstruction.X.copy()
+    use = true_state.usable.repeat(4)
+    found = {}
+    for rho in (0.0, 0.9):
+        errors, stds, taus = [], [], []
+        for seed in range(3):
+            true_state.tracks.uv[:] = exact + _drifting_errors(true_state.tracks, np.random.default_rng(seed), 0.1, rho)
+            rec, _ = bundle_adjust(true_state.reconstruction, true_state.tracks, use, False, PRIOR)
+            _, info = bundle_adjust(rec, true_state.tracks, use, False, PRIOR, max_iterations=0, with_covariance=True)
+            adjusted = rec.X[info.points]
+            fit = similarity_from_points(adjusted, truth[info.points], with_scale=False)
+            errors.append(np.linalg.norm(fit.apply(adjusted) - truth[info.points], axis=1))
+            stds.append(info.disc_std(rec.X)[info.points])
+            taus.append(info.correlation_time)
+        ratio = np.sqrt(np.mean(np.concatenate(errors) ** 2) / np.mean(np.concatenate(stds) ** 2))
+        found[rho] = (float(np.median(taus)), ratio)
+    # The bundle sees the errors' correlation in its own residuals ...
+    assert found[0.0][0] < 1.5 and found[0.9][0] > 4.0, found
+    # ... and the uncertainty it reports covers the map's error either way.
+    assert found[0.0][1] < 1.5 and found[0.9][1] < 1.5, found

@@ -118,3 +118,28 @@ def test_a_long_stretch_without_cards_never_leaves_a_card_5_cm_off_unnamed(
     for t in result.targets:
         wrong = errors[t.id].max() > 0.05
         assert not wrong or t.id in named, f"card {t.id} is {1000 * errors[t.id].max():.0f} mm off, unnamed"
+
+
+def _cards_near_the_middle(frames: list[list[DetectedTarget]], radius_px: float) -> list[list[DetectedTarget]]:
+    """Each frame with only the cards whose discs are all within ``radius_px`` of the
+    image's centre: a room filmed with the cards always in the middle of the picture."""
+    centre = np.array([SURVEY_ROOM.camera.width - 1, SURVEY_ROOM.camera.height - 1]) / 2
+    return [[t for t in f if (np.linalg.norm(t.discs - centre, axis=1) < radius_px).all()] for f in frames]
+
+
+def test_a_principal_point_the_footage_cannot_pin_down_is_warned_about(synthetic_frames) -> None:  # type: ignore[no-untyped-def]
+    frames = synthetic_frames(0.05, 0)
+    camera = SURVEY_ROOM.camera
+    weak = _survey(_cards_near_the_middle(frames, 200.0), None)
+    assert weak.n_registered >= MIN_LENS_FRAMES and weak.intrinsics_std is not None
+    # Cards only near the middle of the picture leave the principal point loose: the
+    # survey says so, by how much, and what to film ...
+    warnings = [w for w in weak.warnings if "principal point is poorly determined" in w]
+    assert len(warnings) == 1 and "rolled" in warnings[0], weak.warnings
+    std = weak.intrinsics_std[1:3]
+    error = np.abs([weak.camera.cx - camera.cx, weak.camera.cy - camera.cy])
+    assert (std > 0.5).all() and (error < 3 * std).all(), (error, std)
+    # ... while the same walk with the cards all over the picture pins it down.
+    whole = _survey(frames, None)
+    assert whole.intrinsics_std is not None and not any("principal point" in w for w in whole.warnings)
+    assert np.hypot(whole.camera.cx - camera.cx, whole.camera.cy - camera.cy) < 1.0
