@@ -16,9 +16,14 @@ Columns: *disc-centre error*: the detected disc centres against the true project
 discs over 4 px); *focal error*, *principal point*: the self-calibrated camera against
 the true one; *disc RMS*: the map against the truth after the best similarity (mm), self-
 calibrated and with the true intrinsics, and their ratio; the principal point's error
-comes with the survey's own standard deviation (the larger of x and y); *NEES*: the tracking walk's
-normalised squared position errors with the self-calibrated map, its `std_m` included
-(median; chi-square with 3 degrees of freedom: 2.37 if honest).
+comes with the survey's own standard deviation (the larger of x and y), and in units of
+it (the worst room: at most 2 if the deviation is honest); *correlation time*: how many
+consecutive observations of a disc the survey counts as one independent measurement
+(`SurveyResult.correlation_time`: its covariance is widened by it); *NEES*: the tracking
+walk's normalised squared position errors with the self-calibrated map, its `std_m`
+included (median; chi-square with 3 degrees of freedom: 2.37 if honest). The standard
+deviations and the NEES are also given as if every observation were independent (the
+covariance not widened: the same map and poses, only its uncertainty divided back).
 
 A walk filmed with an exposure (``--walk centre_loop``, ``pan``, ``sparse``, ``plain``) can
 also be rendered along its exposure's path (``--recordings frames "frames, blur along
@@ -30,6 +35,10 @@ under the ceiling (``"frames, lamps"``: `ExampleRoom.lamps`, light falling off w
 distance, cards shaded across their faces; ``"frames, lamps and glossy cards"``: the cards'
 paper glossy, `app.sim.examples.GLOSSY_PAPER`); the tracking walk stays evenly lit. The
 furnished room's walk (``--walk furnished``) has cards on boards seen at grazing angles.
+``"frames, rolling shutter"`` reads each frame's rows out one after another over
+``--readout-ms`` (20 ms, a phone's; `app.sim.shutter`), the survey walk and the tracking
+walk alike; the truth is the mid-readout pose. *tracking error*: the tracking walk's
+position errors (median, mm).
 
 Run: ``.venv/bin/python bench/bench_recording.py [--seeds 0 1 2 3] [--frames 300]
 [--bits-per-pixel 0.28] [--walk bench] [--recordings frames "phone video"]`` (markdown
@@ -58,13 +67,15 @@ from app.sim import (  # noqa: E402
     ExampleWalk,
     FrameTruth,
     PhoneVideo,
-    camera_walk,
+    draw_walk,
     render_walk,
 )
 from bench.walk_runs import detect_frames, map_fit, track_walk  # noqa: E402
 
 RECORDINGS = ("frames", "phone video", "frames, blur along the path", "frames, cine lens depth of field",
-              "frames, lamps", "frames, lamps and glossy cards")
+              "frames, lamps", "frames, lamps and glossy cards", "frames, rolling shutter")
+#: A phone's readout, first row to last (seconds): 1080p sensors read out in 15-30 ms.
+READOUT_S = 0.020
 
 
 @dataclass
@@ -82,7 +93,10 @@ class Run:
     disc_rms_mm: float
     disc_rms_true_intrinsics_mm: float
     nees: np.ndarray
+    track_errors_mm: np.ndarray  # the tracking walk's position errors
     seconds: float
+    correlation_time: float  # the survey's observations per independent one (its covariance is widened by it)
+    nees_independent: np.ndarray  # NEES with std_m as if every observation were independent
 
 
 def seen_whole(truth: FrameTruth) -> dict[int, np.ndarray]:
@@ -111,17 +125,30 @@ def disc_rms_mm(result: SurveyResult, truth: dict[int, np.ndarray]) -> float:
 
 
 def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video: PhoneVideo,
-             detector: Detector, survey_detector: Detector, recordings: list[str]) -> list[Run]:
+             detector: Detector, survey_detector: Detector, recordings: list[str], readout_s: float) -> list[Run]:
     """Each recording of one room's walk, surveyed and tracked with."""
     camera = walk.room.camera
-    track_rng = np.random.default_rng([seed, 1])
     scene = walk.walk(seed, n_frames).scene
-    track_poses = camera_walk(track_rng, scene.room_size, n_tracking, kind="tracking")
-    t_frames, t_truths, _ = detect_frames(detector, render_walk(scene, camera, track_poses, track_rng),
-                                          n_tracking, f"room {seed}: tracking walk")
+
+    def tracking_walk(rolling: bool) -> tuple[list[list[DetectedTarget]], list[FrameTruth]]:
+        """The room's tracking walk, through a global or a rolling shutter (the same
+        poses and noise either way)."""
+        rng = np.random.default_rng([seed, 1])
+        drawn = draw_walk(rng, scene.room_size, n_tracking, "tracking")
+        frames, truths, _ = detect_frames(
+            detector, render_walk(scene, camera, drawn.poses, rng,
+                                  readouts=drawn.readouts(readout_s) if rolling else None),
+            n_tracking, f"room {seed}: tracking walk{', rolling shutter' if rolling else ''}")
+        return frames, truths
+
+    tracking = {False: tracking_walk(False)}
     truth = {t.id: t.discs for t in scene.targets}
     runs = []
     for recording in recordings:
+        rolling = recording == "frames, rolling shutter"
+        if rolling not in tracking:
+            tracking[rolling] = tracking_walk(rolling)
+        t_frames, t_truths = tracking[rolling]
         # The same walk drawn afresh: the same poses, degradations and noise.
         room = walk.walk(seed, n_frames)
         lighting = None
@@ -131,7 +158,7 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
             survey_detector, room.frames(camera, video=video if recording == "phone video" else None,
                                          follow_path=recording == "frames, blur along the path",
                                          lens=CINE_LENS if recording == "frames, cine lens depth of field" else None,
-                                         lighting=lighting),
+                                         lighting=lighting, readout_s=readout_s if rolling else None),
             n_frames, f"room {seed}: {recording}")
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
@@ -140,25 +167,40 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
         fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
         cam = result.camera
         rigid, _ = map_fit(result, truth, with_scale=False)
-        nees = track_walk(t_frames, t_truths, {t.id: t.discs for t in result.targets}, cam, rigid,
-                          {t.id: t.std_m for t in result.targets})[1]
+        discs = {t.id: t.discs for t in result.targets}
+        track_errors, nees = track_walk(t_frames, t_truths, discs, cam, rigid, {t.id: t.std_m for t in result.targets})
+        # The same map with the uncertainty it would report if the observations were
+        # independent (the covariance is widened by the correlation time, nothing else).
+        narrow = 1.0 / np.sqrt(result.correlation_time)
+        nees_independent = track_walk(t_frames, t_truths, discs, cam, rigid,
+                                      {t.id: t.std_m * narrow for t in result.targets})[1]
         runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / camera.fx - 1),
                         float(np.hypot(cam.cx - camera.cx, cam.cy - camera.cy)),
                         float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
-                        disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)], seconds))
+                        disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)],
+                        1000 * track_errors[np.isfinite(track_errors)], seconds,
+                        result.correlation_time, nees_independent[np.isfinite(nees_independent)]))
     return runs
 
 
 def row(label: str, recording: str, runs: list[Run]) -> str:
     errors = np.concatenate([r.disc_errors_px for r in runs])
     nees = np.concatenate([r.nees for r in runs])
+    nees_independent = np.concatenate([r.nees_independent for r in runs])
+    worst = max(runs, key=lambda r: r.principal_px / r.principal_std_px)
     self_cal = np.median([r.disc_rms_mm for r in runs])
     fixed = np.median([r.disc_rms_true_intrinsics_mm for r in runs])
     return (f"| {label} | {recording} | {np.median(errors):.3f} / {np.percentile(errors, 90):.3f} "
             f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % "
             f"| {max(abs(r.focal_pct) for r in runs):.3f} % | {max(r.principal_px for r in runs):.2f} "
-            f"({max(r.principal_std_px for r in runs):.2f}) "
-            f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} "
+            f"({max(r.principal_std_px for r in runs):.2f} / "
+            f"{max(r.principal_std_px / np.sqrt(r.correlation_time) for r in runs):.2f}) "
+            f"| {worst.principal_px / worst.principal_std_px:.2f} / "
+            f"{worst.principal_px / worst.principal_std_px * np.sqrt(worst.correlation_time):.2f} "
+            f"| {max(r.correlation_time for r in runs):.1f} "
+            f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} / "
+            f"{np.median(nees_independent):.2f} "
+            f"| {np.median(np.concatenate([r.track_errors_mm for r in runs])):.2f} "
             f"| {np.mean([r.seconds for r in runs]):.1f} |")
 
 
@@ -174,6 +216,8 @@ def main() -> None:
     parser.add_argument("--recordings", nargs="+", choices=RECORDINGS, default=list(RECORDINGS[:2]),
                         help="how the walk is recorded; blur along the path needs a walk with an exposure "
                              "(centre_loop, pan, sparse, plain)")
+    parser.add_argument("--readout-ms", type=float, default=1000 * READOUT_S,
+                        help="the rolling shutter's readout, first row to last (ms)")
     args = parser.parse_args()
     walk = WALKS[args.walk]
     if "frames, blur along the path" in args.recordings and walk.exposure_s is None:
@@ -186,7 +230,7 @@ def main() -> None:
     started = time.perf_counter()
     runs = [run for seed in args.seeds
             for run in run_room(walk, seed, args.frames, args.tracking_frames, video, detector, survey_detector,
-                                args.recordings)]
+                                args.recordings, args.readout_ms / 1000)]
     camera = walk.room.camera
     bit_rate = video.bit_rate(camera.width, camera.height, 30.0)
     print(f"\nRecording: the {walk.name} walk ({walk.room.name} room, {walk.kind}"
@@ -195,9 +239,11 @@ def main() -> None:
           f"{video.keyframe_s:g} s) at {video.bits_per_pixel:g} bits per pixel ({bit_rate / 1e6:.1f} Mbit/s); "
           f"tracking walks of {args.tracking_frames} frames; {time.perf_counter() - started:.0f} s in all\n")
     print("| room | recording | disc-centre error, median / p90 (px) | cards found | focal error | "
-          "principal point error (reported 1 sigma) (px) | disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median "
-          "| detection + survey (s) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "principal point error (reported 1 sigma / as if independent) (px) | principal point error in sigmas "
+          "(worst; / as if independent) | correlation time (observations) "
+          "| disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median (/ as if independent) "
+          "| tracking error, median (mm) | detection + survey (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for seed in args.seeds:
         for recording in args.recordings:
             print(row(str(seed), recording, [r for r in runs if r.seed == seed and r.recording == recording]))

@@ -30,7 +30,7 @@ from app.sim.scenes import (
     room_walls,
 )
 from app.sim.video import PhoneVideo
-from app.sim.walks import ExposureBlur, Shake, WalkKind, draw_walk
+from app.sim.walks import ExposureBlur, Shake, Walk, WalkKind, draw_walk
 
 __all__ = [
     "BARE_WALL_ROOM",
@@ -85,16 +85,21 @@ class RoomWalk:
     blur : list of ExposureBlur or None
         Each frame's motion blur from the camera's motion during its exposure; None:
         the degradation preset's random blur.
+    walk : Walk or None
+        The drawn walk the poses are of (its poses between frames: a rolling shutter's
+        readout); None: only the frames' poses are known.
     """
 
     scene: Scene
     poses: list[Pose]
     rng: np.random.Generator
     blur: list[ExposureBlur] | None = None
+    walk: Walk | None = None
 
     def frames(self, camera: Camera, degradation: str | DegradationRanges = "default", supersample: int = 2,
                video: PhoneVideo | None = None, follow_path: bool = False, lens: ThinLens | None = None,
-               lighting: Lighting | None = None) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+               lighting: Lighting | None = None, readout_s: float | None = None
+               ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
         """The walk's rendered frames and their truth (`render_walk`, with the walk's blur),
         drawn on from `rng`.
 
@@ -115,14 +120,28 @@ class RoomWalk:
             The lens's depth of field: each pixel blurred as its depth says.
         lighting : Lighting, optional
             Lamps that light the room (`app.sim.lighting`); None: lit alike everywhere.
+        readout_s : float, optional
+            A rolling shutter's readout time, seconds (`Walk.readouts`; walks drawn by
+            `ExampleRoom.walk` only); None: a global shutter.
 
         Yields
         ------
         image : (height, width) ndarray of uint8
         truth : FrameTruth
+
+        Raises
+        ------
+        ValueError
+            With `readout_s`, when the walk between its frames is not known.
         """
+        readouts = None
+        if readout_s is not None:
+            if self.walk is None:
+                raise ValueError("a rolling shutter needs the drawn walk (ExampleRoom.walk)")
+            readouts = self.walk.readouts(readout_s)
         yield from render_walk(self.scene, camera, self.poses, self.rng, degradation, supersample, blur=self.blur,
-                               video=video, follow_path=follow_path, lens=lens, lighting=lighting)
+                               video=video, follow_path=follow_path, lens=lens, lighting=lighting,
+                               readouts=readouts)
 
 
 @dataclass(frozen=True)
@@ -220,7 +239,7 @@ class ExampleRoom:
                            walls=self.walls, cards=self.cards, furniture=self.furniture)
         walk = draw_walk(rng, self.size, n_frames, kind, shake)
         blur = walk.exposure_blur(self.camera, exposure_s, self.size) if exposure_s is not None else None
-        return RoomWalk(scene, walk.poses, rng, blur)
+        return RoomWalk(scene, walk.poses, rng, blur, walk)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from app.core.markers import CODE_ORIGIN, CODE_SIZE, DEFAULT_FAMILY, get_family,
 from app.sim import degrade
 from app.sim.lighting import Lighting, shade
 from app.sim.render import TexturedQuad, render
+from app.sim.shutter import RollingReadout, rolling_projection, rolling_warp
 from app.sim.surfaces import Surfaces, cast_surfaces, quad_hits
 from app.sim.video import PhoneVideo, record
 from app.sim.walks import FPS, ExposureBlur, camera_walk, exposure_average
@@ -1024,6 +1025,7 @@ def render_frame(
     exposure: Sequence[Pose] = (),
     lens: degrade.ThinLens | None = None,
     lighting: Lighting | None = None,
+    readout: RollingReadout | None = None,
 ) -> tuple[np.ndarray, FrameTruth]:
     """Render one frame and its ground truth.
 
@@ -1054,6 +1056,11 @@ def render_frame(
         Lamps: each pixel lit by its surface's irradiance, glossy cards' highlights
         added, the frame auto-exposed (`lighting.shade`), before the depth of field.
         With `exposure`, lit as seen from `pose`. None: every surface lit alike.
+    readout : RollingReadout, optional
+        A rolling shutter's poses through the frame's readout, `pose` the middle one:
+        the rendered frame is warped as the shutter reads it (`shutter.rolling_warp`,
+        before the sensor's degradations) and the truth's disc projections are where
+        the shutter puts them (`shutter.rolling_projection`). None: a global shutter.
 
     Returns
     -------
@@ -1066,20 +1073,38 @@ def render_frame(
                          for p in exposure], axis=0)
     else:
         image = render(camera, pose, scene.quads(), background=0.5, supersample=supersample)
-    if lens is not None or lighting is not None:
+    if lens is not None or lighting is not None or readout is not None:
         surfaces = scene.surfaces(camera, pose)
         if lighting is not None:
             image = shade(image, surfaces, lighting, pose.position)
         if lens is not None:
             depth = np.where(np.isfinite(surfaces.depth), surfaces.depth, _FAR_M)
             image = degrade.depth_defocus(image, depth, lens, camera.fx)
+        if readout is not None:
+            image = rolling_warp(image, camera, pose, readout, surfaces.depth)
     truth = frame_truth(camera, pose, scene, degradation.to_dict() if degradation else {})
+    if readout is not None:
+        truth = _rolled(truth, camera, readout, scene)
     visible = truth.visible_targets()
     if visible and occlusion_probability > 0 and rng.random() < occlusion_probability:
         image, truth = _occlude_one(image, truth, visible[int(rng.integers(len(visible)))], rng)
     if degradation is not None:
         image = degradation.apply(image, rng)
     return degrade.to_uint8(image), truth
+
+
+def _rolled(truth: FrameTruth, camera: Camera, readout: RollingReadout, scene: Scene) -> FrameTruth:
+    """The truth's disc projections as a rolling shutter places them (visibility stays
+    the mid-readout pose's)."""
+    discs = {t.id: t.discs for t in scene.targets}
+    targets = []
+    for t in truth.targets:
+        uv = t.discs_px.copy()
+        finite = np.isfinite(uv).all(axis=1)
+        if finite.any():
+            uv[finite] = rolling_projection(camera, readout, discs[t.id][finite])
+        targets.append(dataclasses.replace(t, discs_px=uv))
+    return dataclasses.replace(truth, targets=targets)
 
 
 def _occlude_one(image: np.ndarray, truth: FrameTruth, target: TargetTruth,
@@ -1252,6 +1277,7 @@ def render_walk(
     follow_path: bool = False,
     lens: degrade.ThinLens | None = None,
     lighting: Lighting | None = None,
+    readouts: Sequence[RollingReadout] | None = None,
 ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Frames of a camera walk, each with its own sampled degradation, and their truth.
 
@@ -1286,6 +1312,9 @@ def render_walk(
         The lens's depth of field (`render_frame`).
     lighting : Lighting, optional
         The scene's lamps (`render_frame`).
+    readouts : sequence of RollingReadout, optional
+        Each frame's rolling-shutter readout (`Walk.readouts`, centred on the frame's
+        pose; `render_frame`). None: a global shutter.
 
     Yields
     ------
@@ -1300,6 +1329,8 @@ def render_walk(
     ranges = degradation if isinstance(degradation, degrade.DegradationRanges) else degrade.PRESETS[degradation]
     if blur is not None and len(blur) != len(poses):
         raise ValueError(f"blur gives {len(blur)} frames for {len(poses)} poses")
+    if readouts is not None and len(readouts) != len(poses):
+        raise ValueError(f"readouts gives {len(readouts)} frames for {len(poses)} poses")
 
     def frames() -> Iterator[tuple[np.ndarray, FrameTruth]]:
         for k, pose in enumerate(poses):
@@ -1314,7 +1345,7 @@ def render_walk(
             if video is not None:
                 sampled = dataclasses.replace(sampled, jpeg_quality=None)
             yield render_frame(scene, camera, pose, rng, sampled, supersample=supersample, exposure=path, lens=lens,
-                               lighting=lighting)
+                               lighting=lighting, readout=None if readouts is None else readouts[k])
 
     if video is None:
         yield from frames()

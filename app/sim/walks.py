@@ -39,6 +39,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from app.core.geometry import Camera, Pose
+from app.sim.shutter import READOUT_SAMPLES, RollingReadout
 
 __all__ = [
     "FPS",
@@ -302,6 +303,33 @@ class Walk:
                 pose = None
             out.append(pose if pose is not None else Pose(R, -R @ centre))
         return out
+
+    def readouts(self, readout_s: float, samples: int = READOUT_SAMPLES) -> list[RollingReadout]:
+        """Each frame's poses through a rolling shutter's readout, centred on the frame's
+        time (the middle row is read at the frame's pose).
+
+        Parameters
+        ----------
+        readout_s : float
+            Time from the first row's read to the last's, seconds, at most a frame's
+            (1 / fps).
+        samples : int, optional
+            Poses drawn through each readout (the rows between them are interpolated).
+
+        Returns
+        -------
+        list of RollingReadout
+            One per frame.
+
+        Raises
+        ------
+        ValueError
+            If the readout is negative or longer than a frame.
+        """
+        if not (0.0 <= readout_s <= 1.0 / self.fps + 1e-12):
+            raise ValueError(f"readout must be in [0, 1 / fps] s, got {readout_s}")
+        offsets = (np.linspace(0.0, 1.0, samples) - 0.5) * readout_s * self.fps
+        return [RollingReadout(tuple(self.poses_at(k + offsets))) for k in range(len(self.poses))]
 
     def exposure_blur(self, camera: Camera, exposure_s: float,
                       room_size: tuple[float, float, float] | None = None) -> list[ExposureBlur]:
