@@ -59,7 +59,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.detection import DetectedTarget, Detector, load_default_classifier, warm_up  # noqa: E402
-from app.core.survey import SurveyResult, survey  # noqa: E402
+from app.core.survey import SurveyError, SurveyResult, survey  # noqa: E402
 from app.sim import (  # noqa: E402
     CINE_LENS,
     GLOSSY_PAPER,
@@ -97,6 +97,7 @@ class Run:
     seconds: float
     correlation_time: float  # the survey's observations per independent one (its covariance is widened by it)
     nees_independent: np.ndarray  # NEES with std_m as if every observation were independent
+    refused: bool  # the self-calibrating survey refused the footage: the rest is the true lens's map
 
 
 def seen_whole(truth: FrameTruth) -> dict[int, np.ndarray]:
@@ -162,9 +163,17 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
             n_frames, f"room {seed}: {recording}")
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
-        result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
-        seconds = detect_s + time.perf_counter() - start
         fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
+        try:
+            result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
+        except SurveyError as refusal:
+            # The survey refuses the footage (its lens check): what a user is then told
+            # to do is give the intrinsics, so that map is the one tracked with.
+            print(f"room {seed}, {recording}: self-calibration refused: {refusal}", file=sys.stderr)
+            result, refused = fixed, True
+        else:
+            refused = False
+        seconds = detect_s + time.perf_counter() - start
         cam = result.camera
         rigid, _ = map_fit(result, truth, with_scale=False)
         discs = {t.id: t.discs for t in result.targets}
@@ -179,19 +188,27 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
                         float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
                         disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)],
                         1000 * track_errors[np.isfinite(track_errors)], seconds,
-                        result.correlation_time, nees_independent[np.isfinite(nees_independent)]))
+                        result.correlation_time, nees_independent[np.isfinite(nees_independent)], refused))
     return runs
 
 
 def row(label: str, recording: str, runs: list[Run]) -> str:
     errors = np.concatenate([r.disc_errors_px for r in runs])
+    tracked = np.concatenate([r.track_errors_mm for r in runs])
+    fixed = np.median([r.disc_rms_true_intrinsics_mm for r in runs])
+    refused = sum(r.refused for r in runs)
+    common = (f"| {label} | {recording} | {np.median(errors):.3f} / {np.percentile(errors, 90):.3f} "
+              f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % ")
+    runs = [r for r in runs if not r.refused]
+    if not runs:  # every room refused: only the true lens's map
+        return (common + f"| refused | | | | (refused) / {fixed:.2f} | | {np.median(tracked):.2f} "
+                "(true lens's map) | |")
     nees = np.concatenate([r.nees for r in runs])
     nees_independent = np.concatenate([r.nees_independent for r in runs])
     worst = max(runs, key=lambda r: r.principal_px / r.principal_std_px)
     self_cal = np.median([r.disc_rms_mm for r in runs])
     fixed = np.median([r.disc_rms_true_intrinsics_mm for r in runs])
-    return (f"| {label} | {recording} | {np.median(errors):.3f} / {np.percentile(errors, 90):.3f} "
-            f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % "
+    return (common +
             f"| {max(abs(r.focal_pct) for r in runs):.3f} % | {max(r.principal_px for r in runs):.2f} "
             f"({max(r.principal_std_px for r in runs):.2f} / "
             f"{max(r.principal_std_px / np.sqrt(r.correlation_time) for r in runs):.2f}) "
@@ -200,7 +217,7 @@ def row(label: str, recording: str, runs: list[Run]) -> str:
             f"| {max(r.correlation_time for r in runs):.1f} "
             f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} / "
             f"{np.median(nees_independent):.2f} "
-            f"| {np.median(np.concatenate([r.track_errors_mm for r in runs])):.2f} "
+            f"| {np.median(tracked):.2f}{f' ({refused} refused: the true lens map)' if refused else ''} "
             f"| {np.mean([r.seconds for r in runs]):.1f} |")
 
 

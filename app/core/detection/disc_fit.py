@@ -36,7 +36,7 @@ move its centre.
 A hand-held camera smears the frame over its exposure, often by more than a disc's
 width. An isotropic blur cannot fit a smeared card, and the compromise it makes, with
 the patch cut short on the code's side, moved the discs toward the card's middle: the
-card's image shrank and a survey of one-sided views put the card 3-8 mm too far
+card's image shrank and a survey of one-sided views put the card 3-6 mm too far
 (`bench/bench_disc_bias.py`). So the model is smeared too: ``ink`` and ``card`` are the
 means of the printed card's images shifted by ``t v`` for `_SMEAR_T` points t along a
 straight smear v (2 parameters, pixels; v = 0 is no smear). Pixels at the sensor's full
