@@ -466,6 +466,7 @@ _EXAMPLE_SURVEY_RESULT: dict[str, Any] = {
     "n_frames": 4, "n_registered": 3, "n_targets": 2, "rms_px": 0.31, "focal_px": 823.4,
     "principal_point": [318.7, 241.2], "dist": [-0.118, 0.094, 0.0, 0.0, 0.0],
     "intrinsics_std": {"focal_px": 2.7, "principal_point_px": [1.9, 1.6], "k1": 0.004, "k2": 0.011},
+    "correlation_time": 1.2,
     "warnings": [_EXAMPLE_WARNING],
     "card_warnings": [{"kind": "few views", "target_ids": [12], "message": _EXAMPLE_WARNING, "frames": []}],
     "timing_s": {"intrinsics": 0.4, "initial": 0.2, "register": 3.1, "bundle": 5.8, "scale": 0.1,
@@ -501,6 +502,10 @@ class SurveyResult(BaseModel):
         description="Distortion coefficients [k1, k2, p1, p2, k3].")
     intrinsics_std: IntrinsicsStd | None = Field(None, description=(
         "How well the survey determined the camera; null when the intrinsics were given."))
+    correlation_time: float = Field(1.0, ge=1.0, description=(
+        "How many consecutive observations of a disc count as one independent measurement: their errors' "
+        "integrated autocorrelation time, from the final adjustment's residuals. The survey's uncertainties "
+        "(intrinsics_std, each disc's std_m) are widened by it; 1 when the frames' errors are independent."))
     warnings: list[str] = Field(description="Every warning, for a person: weak cards, a lens known poorly.")
     card_warnings: list[CardWarning] = Field(default_factory=list, description=(
         "The warnings about parts of the map, with their kind and the cards they name."))

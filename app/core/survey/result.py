@@ -134,7 +134,8 @@ class SurveyResult:
         -------
         dict
             Frames, registered frames, targets, RMS, the lens and its standard deviations
-            (``intrinsics_std``: None when the intrinsics were given), warnings (every one
+            (``intrinsics_std``: None when the intrinsics were given), the correlation time
+            of the discs' errors the uncertainties are widened by, warnings (every one
             as text; ``card_warnings``: those about parts of the map, with their kind, the
             ids of the cards they name and, for a probable misread, the frames it was read
             in) and timing.
@@ -155,6 +156,7 @@ class SurveyResult:
             "intrinsics_std": None if std is None else {
                 "focal_px": number(std[0]), "principal_point_px": [number(std[1]), number(std[2])],
                 "k1": number(std[3]), "k2": number(std[4])},
+            "correlation_time": float(self.correlation_time),
             "warnings": list(self.warnings),
             "card_warnings": [{"kind": w.kind.value, "target_ids": list(w.target_ids), "message": w.message,
                                "frames": list(w.frames)} for w in self.map_warnings],

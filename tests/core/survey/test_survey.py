@@ -55,6 +55,8 @@ def test_synthetic_survey_recovers_lens_and_map(room: ExampleRoom, room_walk: Ro
     errors = np.abs([result.camera.fx - camera.fx, result.camera.cx - camera.cx, result.camera.cy - camera.cy])
     assert (errors < 4 * std[:3]).all(), (errors, std)
     assert result.summary()["intrinsics_std"]["principal_point_px"] == [std[1], std[2]]
+    # Independent noise in every frame: nothing to widen the uncertainties by.
+    assert 1.0 <= result.correlation_time < 1.3 and result.summary()["correlation_time"] == result.correlation_time
     assert len(result.targets) == len({t.id for f in frames for t in f})
     # Metric without any scale fitting to the truth: the card layout fixes it.
     assert _disc_rms(result, scene) < 0.003
