@@ -21,7 +21,9 @@ it (the worst room: at most 2 if the deviation is honest); *correlation time*: h
 consecutive observations of a disc the survey counts as one independent measurement
 (`SurveyResult.correlation_time`: its covariance is widened by it); *NEES*: the tracking
 walk's normalised squared position errors with the self-calibrated map, its `std_m`
-included (median; chi-square with 3 degrees of freedom: 2.37 if honest). The standard
+included (median; chi-square with 3 degrees of freedom: 2.37 if honest); *|error| / std_m*:
+each surveyed disc's error after the best rigid motion over its reported `std_m`
+(median; 0.89 if honest). The standard
 deviations and the NEES are also given as if every observation were independent (the
 covariance not widened: the same map and poses, only its uncertainty divided back).
 
@@ -98,6 +100,7 @@ class Run:
     correlation_time: float  # the survey's observations per independent one (its covariance is widened by it)
     nees_independent: np.ndarray  # NEES with std_m as if every observation were independent
     refused: bool  # the self-calibrating survey refused the footage: the rest is the true lens's map
+    error_over_std: np.ndarray  # each disc's error after the best rigid motion over its std_m
 
 
 def seen_whole(truth: FrameTruth) -> dict[int, np.ndarray]:
@@ -175,7 +178,8 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
             refused = False
         seconds = detect_s + time.perf_counter() - start
         cam = result.camera
-        rigid, _ = map_fit(result, truth, with_scale=False)
+        rigid, rigid_errors = map_fit(result, truth, with_scale=False)
+        error_over_std = rigid_errors / np.concatenate([t.std_m for t in result.targets])
         discs = {t.id: t.discs for t in result.targets}
         track_errors, nees = track_walk(t_frames, t_truths, discs, cam, rigid, {t.id: t.std_m for t in result.targets})
         # The same map with the uncertainty it would report if the observations were
@@ -188,7 +192,8 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
                         float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
                         disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)],
                         1000 * track_errors[np.isfinite(track_errors)], seconds,
-                        result.correlation_time, nees_independent[np.isfinite(nees_independent)], refused))
+                        result.correlation_time, nees_independent[np.isfinite(nees_independent)], refused,
+                        error_over_std[np.isfinite(error_over_std)]))
     return runs
 
 
@@ -201,7 +206,7 @@ def row(label: str, recording: str, runs: list[Run]) -> str:
               f"| {100 * sum(r.found for r in runs) / max(sum(r.seen for r in runs), 1):.1f} % ")
     runs = [r for r in runs if not r.refused]
     if not runs:  # every room refused: only the true lens's map
-        return (common + f"| refused | | | | (refused) / {fixed:.2f} | | {np.median(tracked):.2f} "
+        return (common + f"| refused | | | | (refused) / {fixed:.2f} | | | {np.median(tracked):.2f} "
                 "(true lens's map) | |")
     nees = np.concatenate([r.nees for r in runs])
     nees_independent = np.concatenate([r.nees_independent for r in runs])
@@ -215,7 +220,9 @@ def row(label: str, recording: str, runs: list[Run]) -> str:
             f"| {worst.principal_px / worst.principal_std_px:.2f} / "
             f"{worst.principal_px / worst.principal_std_px * np.sqrt(worst.correlation_time):.2f} "
             f"| {max(r.correlation_time for r in runs):.1f} "
-            f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) | {np.median(nees):.2f} / "
+            f"| {self_cal:.2f} / {fixed:.2f} ({self_cal / fixed:.2f}) "
+            f"| {np.median(np.concatenate([r.error_over_std for r in runs])):.2f} "
+            f"| {np.median(nees):.2f} / "
             f"{np.median(nees_independent):.2f} "
             f"| {np.median(tracked):.2f}{f' ({refused} refused: the true lens map)' if refused else ''} "
             f"| {np.mean([r.seconds for r in runs]):.1f} |")
@@ -258,9 +265,9 @@ def main() -> None:
     print("| room | recording | disc-centre error, median / p90 (px) | cards found | focal error | "
           "principal point error (reported 1 sigma / as if independent) (px) | principal point error in sigmas "
           "(worst; / as if independent) | correlation time (observations) "
-          "| disc RMS, self-calibrated / true intrinsics (mm) (ratio) | NEES, median (/ as if independent) "
-          "| tracking error, median (mm) | detection + survey (s) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| disc RMS, self-calibrated / true intrinsics (mm) (ratio) | \\|error\\| / std_m, median "
+          "| NEES, median (/ as if independent) | tracking error, median (mm) | detection + survey (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for seed in args.seeds:
         for recording in args.recordings:
             print(row(str(seed), recording, [r for r in runs if r.seed == seed and r.recording == recording]))
