@@ -990,8 +990,8 @@ def _fit_the_other_frames(rec: Reconstruction, info: BundleInfo, p: _Problem, fe
     out = BundleInfo(
         iterations=info.iterations, cost=cost, rms_px=_rms(r), obs=p.obs, points=p.points, n_intr=info.n_intr,
         residuals=r, weights=_weights(p, r), covariance=info.covariance, held_frame=info.held_frame,
-        correlation_time=info.correlation_time, feature_X=Xf, feature_obs=fp.obs, feature_points=points, feature_residuals=rf,
-        feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
+        correlation_time=info.correlation_time, feature_X=Xf, feature_obs=fp.obs, feature_points=points,
+        feature_residuals=rf, feature_weights=features.weights(rf), feature_rms_px=_rms(rf),
     )
     return rec, out
 
