@@ -25,15 +25,20 @@ Run: ``.venv/bin/python bench/bench_disc_fit.py [--seeds 0 1] [--step 10]``
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from app.core.detection import Detector, fit_disc_centres, load_default_classifier, warm_up
-from app.core.geometry import disc_axes, homographies
-from app.sim import BENCH_CAMERA, BENCH_ROOM, degrade, render_frame
+# This checkout's package, whichever one the environment has installed.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.core.detection import Detector, fit_disc_centres, load_default_classifier, warm_up  # noqa: E402
+from app.core.geometry import disc_axes, homographies  # noqa: E402
+from app.sim import BENCH_CAMERA, BENCH_ROOM, degrade, render_frame  # noqa: E402
 
 BINS = [0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 100.0]
 FACING_BINS = [0.3, 0.5, 0.7, 0.85, 1.01]
