@@ -52,10 +52,10 @@ the 10 parameters, with analytic derivatives, all discs of a frame at once:
    (`SMEAR_EVIDENCE`) and the smear is at least `MIN_SMEAR_PX` long; otherwise the
    unsmeared fit (8 parameters) stands.
 
-The code's cells are not modelled. A smear carries their ink toward the disc, but
-leaving out the pixels it can reach cost more than it gained: the patch, cut short on
-the code's side, lost the disc's inner edge, and the survey's floor on the centre-loop
-walks went from 1.5-2.2 mm back to 1.9-4.2 mm (`bench/bench_survey_floor.py`).
+The code's cells are not modelled, and the pixels a smear carries their ink to are kept:
+leaving them out would cut the patch short on the code's side and lose the disc's inner
+edge (the survey's floor on the centre-loop walks is 1.9-4.2 mm with that cut, 1.5-2.2
+mm without, `bench/bench_survey_floor.py`).
 
 The result is the projection of the disc's centre: the homography's own, moved by the
 fitted delta.
