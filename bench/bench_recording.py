@@ -166,17 +166,18 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
             n_frames, f"room {seed}: {recording}")
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
-        fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
+        result: SurveyResult | None = None
         try:
             result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
         except SurveyError as refusal:
-            # The survey refuses the footage (its lens check): what a user is then told
-            # to do is give the intrinsics, so that map is the one tracked with.
             print(f"room {seed}, {recording}: self-calibration refused: {refusal}", file=sys.stderr)
-            result, refused = fixed, True
-        else:
-            refused = False
         seconds = detect_s + time.perf_counter() - start
+        fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
+        # A refused survey (its lens check) tells the user to give the intrinsics: that
+        # map is the one tracked with.
+        refused = result is None
+        if result is None:
+            result = fixed
         cam = result.camera
         rigid, rigid_errors = map_fit(result, truth, with_scale=False)
         error_over_std = rigid_errors / np.concatenate([t.std_m for t in result.targets])

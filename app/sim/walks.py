@@ -304,6 +304,11 @@ class Walk:
             out.append(pose if pose is not None else Pose(R, -R @ centre))
         return out
 
+    def _within_a_frame(self, what: str, seconds: float) -> None:
+        """Refuse a duration (an exposure, a readout) outside [0, 1 / fps]."""
+        if not (0.0 <= seconds <= 1.0 / self.fps + 1e-12):
+            raise ValueError(f"{what} must be in [0, 1 / fps] s, got {seconds}")
+
     def readouts(self, readout_s: float, samples: int = READOUT_SAMPLES) -> list[RollingReadout]:
         """Each frame's poses through a rolling shutter's readout, centred on the frame's
         time (the middle row is read at the frame's pose).
@@ -326,8 +331,7 @@ class Walk:
         ValueError
             If the readout is negative or longer than a frame.
         """
-        if not (0.0 <= readout_s <= 1.0 / self.fps + 1e-12):
-            raise ValueError(f"readout must be in [0, 1 / fps] s, got {readout_s}")
+        self._within_a_frame("readout", readout_s)
         offsets = (np.linspace(0.0, 1.0, samples) - 0.5) * readout_s * self.fps
         return [RollingReadout(tuple(self.poses_at(k + offsets))) for k in range(len(self.poses))]
 
@@ -363,8 +367,7 @@ class Walk:
         ValueError
             If the exposure is negative or longer than a frame.
         """
-        if not (0.0 <= exposure_s <= 1.0 / self.fps + 1e-12):
-            raise ValueError(f"exposure must be in [0, 1 / fps] s, got {exposure_s}")
+        self._within_a_frame("exposure", exposure_s)
         n = len(self.poses)
         half = 0.5 * exposure_s * self.fps
         frames = np.arange(n, dtype=np.float64)

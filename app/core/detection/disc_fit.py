@@ -132,10 +132,10 @@ class DiscFit:
         Which discs were fitted.
     blur_px : ndarray, shape (T, 4)
         The fitted blur s in pixels; NaN where not fitted.
-    smear_px : ndarray, shape (T, 4, 2)
-        The fitted smear v in pixels (its sign is arbitrary); NaN where not fitted.
     rms : ndarray, shape (T, 4)
         The residual RMS in grey levels; NaN where not fitted.
+    smear_px : ndarray, shape (T, 4, 2)
+        The fitted smear v in pixels (its sign is arbitrary); NaN where not fitted.
     """
 
     centres: np.ndarray
@@ -264,8 +264,7 @@ def fit_disc_centres(gray: np.ndarray, discs: np.ndarray, homographies: np.ndarr
         return line[:, 0, None] * pxf + line[:, 1, None] * pyf + line[:, 2, None]
 
     du_all, dv_all = dist(line_u), dist(line_v)
-    to_code_u, to_code_v = dist(cline_u), dist(cline_v)
-    near_code = (to_code_u > -CODE_MARGIN_PX) & (to_code_v > -CODE_MARGIN_PX)
+    near_code = (dist(cline_u) > -CODE_MARGIN_PX) & (dist(cline_v) > -CODE_MARGIN_PX)
     wx = hinv_r[:, 2, 0, None] * pxf + hinv_r[:, 2, 1, None] * pyf + hinv_r[:, 2, 2, None]
     ou = ((hinv_r[:, 0, 0, None] * pxf + hinv_r[:, 0, 1, None] * pyf + hinv_r[:, 0, 2, None]) / wx
           - cc[:, 0, None]) * sg[:, 0, None]
