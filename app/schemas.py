@@ -808,6 +808,26 @@ class Smoothing(BaseModel):
                                                                  "speed, Hz per rad/s.")
 
 
+class RollingShutterModel(BaseModel):
+    """A camera whose rows are read one after another (a phone's, most webcams'): each
+    row sees the room from where the camera was when it was read. Given, /track fits
+    the camera's motion through the readout with each pose (docs/tracking.md)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_examples({"readout_ms": 20.0, "frame_rate": 30.0}))
+
+    readout_ms: float = Field(gt=0, le=1000, description="Time from the first row's read to the last's, ms "
+                                                         "(phones: 10-30 ms).")
+    frame_rate: float = Field(gt=0, le=1000, description="Frames a second the client sends: one step of the "
+                                                         "frames' seq is 1 / frame_rate seconds.")
+
+    @model_validator(mode="after")
+    def _within_a_frame(self) -> RollingShutterModel:
+        if self.readout_ms * self.frame_rate > 1000.0:
+            raise ValueError(f"a readout of {self.readout_ms:g} ms is longer than a frame at {self.frame_rate:g} "
+                             "frames a second")
+        return self
+
+
 #: One label of a host name (RFC 1123): letters, digits and inner hyphens, 1-63 characters.
 _HOST_LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
 #: A last label the system's resolver reads as a number ("127.1", "0x7f000001"): the
@@ -899,6 +919,9 @@ class TrackConfig(BaseModel):
     predict_ms: float = Field(0.0, ge=0, le=MAX_PREDICT_MS, description=(
         "Predict the pose this many ms after the frame's arrival at the server (constant velocity), to hide "
         "the latency between a frame and its use; the result is the reply's `filtered`."))
+    rolling_shutter: RollingShutterModel | None = Field(None, description=(
+        "The camera's rolling shutter: each pose is then the middle row's, fitted with the camera's motion "
+        "through the readout. Null: a global shutter (every row read at once)."))
     freed: FreeDConnection | None = Field(None, description=(
         "Send each pose as a FreeD D1 packet over UDP (docs/freed.md): to this connection's own receiver, or "
         "with the environment's FreeD output's host and port and this camera id. Null: the environment's "

@@ -37,6 +37,9 @@ from app.core.detection import Detection, Detector, warm_up
 from app.core.geometry import (
     METHODS,
     Camera,
+    PoseHistory,
+    RollingShutter,
+    TrackedMotion,
     MapTargets,
     Pose,
     PoseEstimate,
@@ -48,6 +51,7 @@ from app.core.geometry import (
     estimate_pose,
     extrapolate,
     plan_regions,
+    rolling_shutter_pose,
     predict_in_view,
     predict_regions,
     reduce_regions,
@@ -132,6 +136,7 @@ class TrackState:
         # ones above, for a whole scan): a card lost for a frame or two is still
         # expected where it was.
         self._posed: tuple[_Seen | None, _Seen | None] = (None, None)
+        self._history = PoseHistory()  # the camera's motion through a rolling shutter's readout
 
     def plan(self, seq: int, camera: Camera, config: TrackConfig, targets: MapTargets,
              in_view: list | None = None) -> tuple[list[Region] | None, str]:
@@ -197,6 +202,12 @@ class TrackState:
             return last.pose  # a jump (a tilt changed between them), not a motion to go on with
         return extrapolate(before.pose, last.pose, (seq - last.seq) / gap)
 
+    def motion(self, seq: int) -> TrackedMotion | None:
+        """The track's last pose and steps before frame `seq` (for a rolling shutter), or
+        None without a recent pose."""
+        with self._lock:
+            return self._history.motion_for(seq)
+
     def update(self, seq: int, camera: Camera, estimate: PoseEstimate | None, full: bool) -> None:
         """Remember frame `seq`'s outcome."""
         seen = None
@@ -220,6 +231,7 @@ class TrackState:
                 self._before, self._last = self._last, seen
             if seen is not None and (self._posed[1] is None or seq > self._posed[1].seq):
                 self._posed = (self._posed[1], seen)
+            self._history.add(seq, None if seen is None else seen.pose)
 
 
 @dataclass(frozen=True)
@@ -431,15 +443,16 @@ class TrackingService:
                 scan_regions = reduce_regions(regions, factor, gray.shape[1], gray.shape[0])
         # The track's expected pose decides a lone card's tilt (config `tilt`).
         prior = stream.state.prior(stream.seq) if stream is not None and config.tilt == "track" else None
+        motion = stream.state.motion(stream.seq) if stream is not None else None
         detection, estimate, pose_error, pose_ms = _detect_and_pose(detector, gray, scan_regions, context,
-                                                                    scan_camera, config, prior)
+                                                                    scan_camera, config, prior, motion)
         timing = {"decode": (decoded - start) * 1e3 - early_ms, "plan": early_ms + (planned_at - decoded) * 1e3,
                   **detection.timing_ms}
         if estimate is None and regions is not None:
             # Lost in the regions (fast motion, a wrong prior): the whole frame, now.
             reason, regions = "fallback", None
             detection, estimate, pose_error, more_ms = _detect_and_pose(detector, gray, None, context, scan_camera,
-                                                                        config, prior)
+                                                                        config, prior, motion)
             pose_ms += more_ms
             for key, value in detection.timing_ms.items():
                 timing[key] = timing.get(key, 0.0) + value
@@ -470,10 +483,11 @@ def _map_version(map_id: int, updated_at: datetime) -> str:
 
 
 def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region] | None, context: TrackingContext,
-                     camera: Camera, config: TrackConfig, prior: Pose | None = None
-                     ) -> tuple[Detection, PoseEstimate | None, str | None, float]:
+                     camera: Camera, config: TrackConfig, prior: Pose | None = None,
+                     motion: TrackedMotion | None = None) -> tuple[Detection, PoseEstimate | None, str | None, float]:
     """(detection, pose estimate or None, why not, milliseconds spent on the pose);
-    `prior`, the track's expected pose, decides a lone card's tilt."""
+    `prior`, the track's expected pose, decides a lone card's tilt; `motion`, the track's
+    last pose and steps, starts the camera's motion through a rolling shutter's readout."""
     detection = detector.detect(gray, regions)
     observations = [
         TargetObservation(t.id, t.discs, context.discs[t.id], context.std.get(t.id))
@@ -481,8 +495,14 @@ def _detect_and_pose(detector: Detector, gray: np.ndarray, regions: list[Region]
     ]
     posed = time.perf_counter()
     try:
-        estimate: PoseEstimate | None = estimate_pose(observations, camera, config.method, config.estimate_focal,
-                                                      prior)
+        estimate: PoseEstimate | None
+        if config.rolling_shutter is not None and observations:
+            shutter = RollingShutter.from_seconds(config.rolling_shutter.readout_ms / 1e3,
+                                                  config.rolling_shutter.frame_rate)
+            estimate = rolling_shutter_pose(observations, camera, shutter, motion, prior, config.method,
+                                            config.estimate_focal).estimate
+        else:
+            estimate = estimate_pose(observations, camera, config.method, config.estimate_focal, prior)
         error = None
     except PoseUndetermined as exc:
         estimate, error = None, str(exc)

@@ -28,6 +28,7 @@ pose is the one at mid-exposure.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -37,6 +38,7 @@ from typing import Literal, get_args
 import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline
 
 from app.core.geometry import Camera, Pose
 from app.sim.shutter import READOUT_SAMPLES, RollingReadout
@@ -263,9 +265,11 @@ class Walk:
     def poses_at(self, frames: np.ndarray) -> list[Pose]:
         """The poses at (fractional) frame times.
 
-        Between frames the base walk is interpolated (centre linearly, rotation along
-        the shortest arc; beyond the ends, extrapolated from the nearest two frames);
-        the shake is evaluated at the exact time.
+        Between frames the base walk is a cubic spline through its frames' poses (the
+        centre a `CubicSpline`, the rotation a `RotationSpline`): a camera in a hand
+        moves smoothly, its velocity changing continuously, not at each frame. Beyond the
+        ends it is extrapolated from the nearest two frames; the shake is evaluated at
+        the exact time.
 
         Parameters
         ----------
@@ -286,16 +290,19 @@ class Walk:
         for k, f in enumerate(frames):
             i = min(max(math.floor(f), 0), max(n - 2, 0))
             frac = float(f - i)
-            if frac == 0.0 or n == 1:
+            pose: Pose | None = None
+            if n == 1 or (frac == 0.0 and f == i):
                 pose = self.base[i]
                 R, centre = pose.R, pose.position
+            elif n >= 3 and 0.0 <= f <= n - 1:
+                R = self._rotation_spline(f).as_matrix()
+                centre = self._centre_spline(f)
             else:
                 a, b = self.base[i], self.base[i + 1]
                 step, _ = cv2.Rodrigues(b.R @ a.R.T)
                 turn, _ = cv2.Rodrigues(frac * step)
                 R = turn @ a.R
                 centre = a.position + frac * (b.position - a.position)
-                pose = None
             if rotation is not None and offset is not None:
                 jitter, _ = cv2.Rodrigues(rotation[k].reshape(3, 1))
                 R = jitter @ R
@@ -303,6 +310,15 @@ class Walk:
                 pose = None
             out.append(pose if pose is not None else Pose(R, -R @ centre))
         return out
+
+    @functools.cached_property
+    def _centre_spline(self) -> CubicSpline:
+        return CubicSpline(np.arange(len(self.base), dtype=np.float64), [p.position for p in self.base])
+
+    @functools.cached_property
+    def _rotation_spline(self) -> RotationSpline:
+        return RotationSpline(np.arange(len(self.base), dtype=np.float64),
+                              Rotation.from_matrix([p.R for p in self.base]))
 
     def _within_a_frame(self, what: str, seconds: float) -> None:
         """Refuse a duration (an exposure, a readout) outside [0, 1 / fps]."""

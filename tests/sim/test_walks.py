@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from app.core.geometry import Pose
+from app.core.geometry import Pose, rotation_angle
 from app.sim import scenes
 from app.sim.examples import (
     CINE_LENS,
@@ -115,10 +115,17 @@ def test_a_walk_between_frames_passes_through_its_frames() -> None:
     for a, b in zip(again, walk.poses, strict=True):
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.t, b.t, atol=1e-12)
-    # Half-way between two frames of the steady walk: half-way between their centres.
+    # Between frames the camera moves smoothly: half-way between two frames it is near
+    # half-way between their centres, and its velocity does not jump at a frame.
     steady = draw_walk(np.random.default_rng(6), SIZE, 50, "centre_loop")
     mid = steady.poses_at(np.array([10.5]))[0]
-    np.testing.assert_allclose(mid.position, (steady.poses[10].position + steady.poses[11].position) / 2, atol=1e-12)
+    np.testing.assert_allclose(mid.position, (steady.poses[10].position + steady.poses[11].position) / 2, atol=1e-3)
+    h = 1e-4
+    before, at, after = (p.position for p in steady.poses_at(np.array([10.0 - h, 10.0, 10.0 + h])))
+    np.testing.assert_allclose((at - before) / h, (after - at) / h, rtol=1e-3)
+    turn_before = rotation_angle(steady.poses_at(np.array([10.0 - h]))[0], steady.poses[10]) / h
+    turn_after = rotation_angle(steady.poses[10], steady.poses_at(np.array([10.0 + h]))[0]) / h
+    assert turn_after == pytest.approx(turn_before, rel=1e-3)
 
 
 def test_motion_blur_is_the_image_motion_during_the_exposure() -> None:
