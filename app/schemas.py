@@ -516,6 +516,8 @@ class SurveyResult(BaseModel):
     feature_tracks: bool = Field(False, description=(
         "Whether the scene's own points were tracked beside the cards (the survey's default; false when it was "
         "asked for the cards alone)."))
+    readout_ms: float | None = Field(None, description=(
+        "The rolling shutter's readout the survey modelled, ms (null: a global shutter)."))
     stage_s: dict[str, float] = Field(default_factory=dict, description=(
         "Seconds each stage took: `detecting` (every frame's targets, spread over the job engine's workers), "
         "`tracking` (the scene's points, with feature_tracks), `reconstructing` (structure from motion)."))
@@ -811,7 +813,7 @@ class Smoothing(BaseModel):
 class RollingShutterModel(BaseModel):
     """A camera whose rows are read one after another (a phone's, most webcams'): each
     row sees the room from where the camera was when it was read. Given, /track fits
-    the camera's motion through the readout with each pose (docs/tracking.md)."""
+    the camera's motion through the readout with each pose (docs/protocol.md)."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra=_examples({"readout_ms": 20.0, "frame_rate": 30.0}))
 

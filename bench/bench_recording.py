@@ -39,8 +39,11 @@ paper glossy, `app.sim.examples.GLOSSY_PAPER`); the tracking walk stays evenly l
 furnished room's walk (``--walk furnished``) has cards on boards seen at grazing angles.
 ``"frames, rolling shutter"`` reads each frame's rows out one after another over
 ``--readout-ms`` (20 ms, a phone's; `app.sim.shutter`), the survey walk and the tracking
-walk alike; the truth is the mid-readout pose. *tracking error*: the tracking walk's
-position errors (median, mm).
+walk alike; the truth is the mid-readout pose. ``"frames, rolling shutter, modelled"`` is
+the same footage surveyed and tracked with the readout modelled (`survey`'s ``shutter``,
+/track's ``rolling_shutter`` config, `app.core.geometry.rolling`); both also track the
+tracking walk with the true map. *tracking error*: the tracking walk's position errors
+(median, mm).
 
 Run: ``.venv/bin/python bench/bench_recording.py [--seeds 0 1 2 3] [--frames 300]
 [--bits-per-pixel 0.28] [--walk bench] [--recordings frames "phone video"]`` (markdown
@@ -52,7 +55,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -72,10 +75,13 @@ from app.sim import (  # noqa: E402
     draw_walk,
     render_walk,
 )
+from app.core.geometry import RollingShutter  # noqa: E402
+from app.sim.walks import FPS  # noqa: E402
 from bench.walk_runs import detect_frames, map_fit, track_walk  # noqa: E402
 
 RECORDINGS = ("frames", "phone video", "frames, blur along the path", "frames, cine lens depth of field",
-              "frames, lamps", "frames, lamps and glossy cards", "frames, rolling shutter")
+              "frames, lamps", "frames, lamps and glossy cards", "frames, rolling shutter",
+              "frames, rolling shutter, modelled")
 #: A phone's readout, first row to last (seconds): 1080p sensors read out in 15-30 ms.
 READOUT_S = 0.020
 
@@ -101,6 +107,9 @@ class Run:
     nees_independent: np.ndarray  # NEES with std_m as if every observation were independent
     refused: bool  # the self-calibrating survey refused the footage: the rest is the true lens's map
     error_over_std: np.ndarray  # each disc's error after the best rigid motion over its std_m
+    # Through a rolling shutter: the tracking walk tracked with the true map (the readout
+    # modelled or not, as the recording); empty for the other recordings.
+    true_map_track_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def seen_whole(truth: FrameTruth) -> dict[int, np.ndarray]:
@@ -147,32 +156,40 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
 
     tracking = {False: tracking_walk(False)}
     truth = {t.id: t.discs for t in scene.targets}
+    recorded: dict[str, tuple[list[list[DetectedTarget]], list[FrameTruth], float]] = {}
     runs = []
     for recording in recordings:
-        rolling = recording == "frames, rolling shutter"
+        rolling = recording.startswith("frames, rolling shutter")
+        # The survey and the tracking model the readout (the survey's rolling_shutter,
+        # /track's config), or take every frame as read at one instant.
+        shutter = RollingShutter.from_seconds(readout_s, FPS) if recording.endswith(", modelled") else None
         if rolling not in tracking:
             tracking[rolling] = tracking_walk(rolling)
         t_frames, t_truths = tracking[rolling]
-        # The same walk drawn afresh: the same poses, degradations and noise.
-        room = walk.walk(seed, n_frames)
-        lighting = None
-        if recording.startswith("frames, lamps"):
-            lighting = walk.room.lamps(GLOSSY_PAPER if recording.endswith("glossy cards") else 0.0)
-        frames, truths, detect_s = detect_frames(
-            survey_detector, room.frames(camera, video=video if recording == "phone video" else None,
-                                         follow_path=recording == "frames, blur along the path",
-                                         lens=CINE_LENS if recording == "frames, cine lens depth of field" else None,
-                                         lighting=lighting, readout_s=readout_s if rolling else None),
-            n_frames, f"room {seed}: {recording}")
+        footage = recording.removesuffix(", modelled")
+        if footage not in recorded:
+            # The same walk drawn afresh: the same poses, degradations and noise.
+            room = walk.walk(seed, n_frames)
+            lighting = None
+            if footage.startswith("frames, lamps"):
+                lighting = walk.room.lamps(GLOSSY_PAPER if footage.endswith("glossy cards") else 0.0)
+            recorded[footage] = detect_frames(
+                survey_detector, room.frames(camera, video=video if footage == "phone video" else None,
+                                             follow_path=footage == "frames, blur along the path",
+                                             lens=CINE_LENS if footage == "frames, cine lens depth of field" else None,
+                                             lighting=lighting, readout_s=readout_s if rolling else None),
+                n_frames, f"room {seed}: {footage}")
+        frames, truths, detect_s = recorded[footage]
         errors, found, seen = disc_errors(frames, truths)
         start = time.perf_counter()
         result: SurveyResult | None = None
         try:
-            result = survey(frames, camera.width, camera.height, walk.room.marker_size_m)
+            result = survey(frames, camera.width, camera.height, walk.room.marker_size_m, shutter=shutter)
         except SurveyError as refusal:
             print(f"room {seed}, {recording}: self-calibration refused: {refusal}", file=sys.stderr)
         seconds = detect_s + time.perf_counter() - start
-        fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera)
+        fixed = survey(frames, camera.width, camera.height, walk.room.marker_size_m, intrinsics=camera,
+                       shutter=shutter)
         # A refused survey (its lens check) tells the user to give the intrinsics: that
         # map is the one tracked with.
         refused = result is None
@@ -182,19 +199,24 @@ def run_room(walk: ExampleWalk, seed: int, n_frames: int, n_tracking: int, video
         rigid, rigid_errors = map_fit(result, truth, with_scale=False)
         error_over_std = rigid_errors / np.concatenate([t.std_m for t in result.targets])
         discs = {t.id: t.discs for t in result.targets}
-        track_errors, nees = track_walk(t_frames, t_truths, discs, cam, rigid, {t.id: t.std_m for t in result.targets})
+        track_errors, nees = track_walk(t_frames, t_truths, discs, cam, rigid, {t.id: t.std_m for t in result.targets},
+                                        shutter)
         # The same map with the uncertainty it would report if the observations were
         # independent (the covariance is widened by the correlation time, nothing else).
         narrow = 1.0 / np.sqrt(result.correlation_time)
         nees_independent = track_walk(t_frames, t_truths, discs, cam, rigid,
-                                      {t.id: t.std_m * narrow for t in result.targets})[1]
+                                      {t.id: t.std_m * narrow for t in result.targets}, shutter)[1]
+        true_map = np.zeros(0)
+        if rolling:
+            true_map = track_walk(t_frames, t_truths, truth, camera, shutter=shutter)[0]
+            true_map = 1000 * true_map[np.isfinite(true_map)]
         runs.append(Run(seed, recording, errors, found, seen, 100 * (cam.fx / camera.fx - 1),
                         float(np.hypot(cam.cx - camera.cx, cam.cy - camera.cy)),
                         float(np.max(result.intrinsics_std[1:3])) if result.intrinsics_std is not None else np.nan,
                         disc_rms_mm(result, truth), disc_rms_mm(fixed, truth), nees[np.isfinite(nees)],
                         1000 * track_errors[np.isfinite(track_errors)], seconds,
                         result.correlation_time, nees_independent[np.isfinite(nees_independent)], refused,
-                        error_over_std[np.isfinite(error_over_std)]))
+                        error_over_std[np.isfinite(error_over_std)], true_map))
     return runs
 
 
@@ -274,6 +296,15 @@ def main() -> None:
             print(row(str(seed), recording, [r for r in runs if r.seed == seed and r.recording == recording]))
     for recording in args.recordings:
         print(row("all (worst focal and principal point)", recording, [r for r in runs if r.recording == recording]))
+    rolled = [r for r in runs if len(r.true_map_track_mm)]
+    if rolled:
+        print(f"\nThe tracking walks through the rolling shutter ({args.readout_ms:g} ms) with the true map, "
+              "median / p90 position error (mm):\n")
+        print("| room | recording | position error, median / p90 (mm) |")
+        print("|---|---|---|")
+        for r in rolled:
+            e = r.true_map_track_mm
+            print(f"| {r.seed} | {r.recording} | {np.median(e):.2f} / {np.percentile(e, 90):.2f} |")
     base = [r for r in runs if r.recording == args.recordings[0]]
     print()
     for recording in args.recordings[1:]:

@@ -17,13 +17,19 @@ from app.core.detection import DetectedTarget, Detector
 from app.core.features import FeatureTracker, exclusion_mask
 from app.core.geometry import (
     Camera,
+    Pose,
+    PoseHistory,
     PoseUndetermined,
+    RollingShutter,
     Similarity,
     TargetObservation,
     alignment_residuals,
     estimate_pose,
+    extrapolate,
+    rolling_shutter_pose,
     similarity_from_points,
 )
+from app.core.geometry.rolling import MAX_GAP
 from app.core.survey import FeatureObservations, SurveyResult
 from app.core.survey.features import triangulate_features
 from app.core.survey.reconstruction import adjust
@@ -316,22 +322,38 @@ def track_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth], d
 
 
 def track_walk(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
-               camera: Camera, to_world: Similarity | None = None, std: dict[int, np.ndarray] | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               camera: Camera, to_world: Similarity | None = None, std: dict[int, np.ndarray] | None = None,
+               shutter: RollingShutter | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`track_errors`, and each pose's normalised squared position error against the
     truth (NEES, e^T C^-1 e with the pose's `covariance_position`; chi-square with 3
     degrees of freedom if the covariance is honest). With `std` (each card's ``std_m``)
-    the poses carry the map's uncertainty, as /track's do with a surveyed map."""
+    the poses carry the map's uncertainty, as /track's do with a surveyed map. With
+    `shutter` the frames are tracked as /track does with its ``rolling_shutter`` config:
+    the motion through each readout fitted with the pose, from the track's last poses."""
     errors, nees = [], []
-    for detected, truth in zip(frames, truths, strict=True):
+    history = PoseHistory()
+    posed: list[tuple[int, Pose]] = []  # the last two poses: /track's prior (constant velocity)
+    for k, (detected, truth) in enumerate(zip(frames, truths, strict=True)):
         obs = [TargetObservation(t.id, t.discs, discs[t.id], None if std is None else std[t.id])
                for t in detected if t.id in discs]
         try:
-            estimate = estimate_pose(obs, camera)
+            if shutter is None or not obs:
+                estimate = estimate_pose(obs, camera)
+            else:
+                track = history.motion_for(k)
+                prior = None
+                if track is not None:
+                    prior = track.previous
+                    if len(posed) == 2 and 0 < posed[1][0] - posed[0][0] <= MAX_GAP:
+                        prior = extrapolate(posed[0][1], posed[1][1], (k - posed[1][0]) / (posed[1][0] - posed[0][0]))
+                estimate = rolling_shutter_pose(obs, camera, shutter, track, prior).estimate
         except PoseUndetermined:
             errors.append(np.nan)
             nees.append(np.nan)
+            history.add(k, None)
             continue
+        history.add(k, estimate.pose)
+        posed = [*posed[-1:], (k, estimate.pose)]
         pose, covariance = estimate.pose, estimate.covariance_position
         if to_world is not None:
             pose = to_world.apply_pose(pose)

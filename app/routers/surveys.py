@@ -31,6 +31,10 @@ class SurveyForm(BaseModel):
         "frames that see one card or none, and cards never filmed together, join the map. The map still holds "
         "the cards only. On by default; false: the cards alone. Walls with too little texture to track leave "
         "the map resting on the cards alone, with a warning (kind `plain walls`)."))
+    readout_ms: float | None = Field(None, description=(
+        "The camera's rolling shutter: time from the first row's read to the last's, ms (phones: 10-30). Each "
+        "frame's discs and points are then moved to its middle row's moment, with the camera's motion from the "
+        "neighbouring frames. A video only (its frame rate); at most a frame. Default: a global shutter."))
 
 
 _SURVEY_FILES = {
@@ -70,7 +74,8 @@ async def start_survey(
         form = form_fields(SurveyForm, fields)
         return surveys.submit_survey(session, runner, settings, environment_id, upload, job_id=job_id,
                                      marker_size_m=form.marker_size_m, intrinsics=form.intrinsics,
-                                     max_frames=form.max_frames, feature_tracks=form.feature_tracks)
+                                     max_frames=form.max_frames, feature_tracks=form.feature_tracks,
+                                     readout_ms=form.readout_ms)
 
     job = await receive_job_upload(
         request, settings, runner, in_flight, admit=lambda: surveys.check_environment(session, environment_id),

@@ -28,7 +28,7 @@ from pydantic import BaseModel, ValidationError
 from sqlalchemy.orm import Session
 
 from app.core.detection import DetectedTarget, Detector
-from app.core.geometry import Camera
+from app.core.geometry import Camera, RollingShutter
 from app.core.imagecodec import ImageError, decode_gray, peek_size
 from app.core.features import FeatureTracker, exclusion_mask
 from app.core.survey import FeatureObservations, SurveyError, survey
@@ -174,6 +174,8 @@ class SurveyParams(BaseModel):
     family: str
     max_pixels: int
     feature_tracks: bool = True  # track the scene's own points beside the cards
+    readout_ms: float | None = None  # a rolling shutter's readout (None: a global shutter)
+    readout_frames: float | None = None  # the same in video frames
     max_video_pixels: int | None = None  # largest frame of a video (None: max_pixels)
 
 
@@ -247,6 +249,7 @@ def submit_survey(
     intrinsics: str | None,
     max_frames: int | None,
     feature_tracks: bool = True,
+    readout_ms: float | None = None,
 ) -> JobOut:
     """Queue the survey job of a stored upload (its folder is the job's). The caller
     removes the folder when this refuses it: no row is written then."""
@@ -259,6 +262,16 @@ def submit_survey(
     if max_frames is not None and not (2 <= max_frames <= settings.max_video_frames):
         raise Invalid(f"max_frames: must be between 2 and {settings.max_video_frames}")
     camera = parse_intrinsics(intrinsics)
+    readout_frames = None
+    if readout_ms is not None:
+        if video is None:
+            raise Invalid("readout_ms: a rolling shutter needs a video (its frame rate times the frames apart)")
+        if not video.fps > 0:
+            raise Invalid("readout_ms: the video does not state its frame rate")
+        readout_frames = readout_ms * video.fps / 1000.0
+        if not 0.0 < readout_frames <= 1.0:
+            raise Invalid(f"readout_ms: must be more than 0 and at most a frame ({1000.0 / video.fps:.1f} ms at "
+                          f"{video.fps:g} frames a second)")
     classifier_id = classifiers.for_environment(session, environment)
     if video is not None:
         assert upload.video is not None
@@ -281,7 +294,7 @@ def submit_survey(
         marker_size_m=float(marker_size_m or environment.marker_size_m), intrinsics=camera,
         max_frames=int(max_frames or settings.survey_frames), classifier_id=classifier_id,
         family=environment.marker_family, max_pixels=settings.max_image_pixels, feature_tracks=feature_tracks,
-        max_video_pixels=settings.max_video_pixels,
+        max_video_pixels=settings.max_video_pixels, readout_ms=readout_ms, readout_frames=readout_frames,
     )
     job = runner.submit(session, JobKind.SURVEY, params, environment_id=environment_id, job_id=job_id,
                         max_active=settings.max_queued_jobs)
@@ -302,16 +315,21 @@ def _video_total(params: SurveyParams, capture: cv2.VideoCapture) -> int:
     return int(params.video_frames or 0) or int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
 
 
-def frame_count(params: SurveyParams) -> int:
-    """How many frames the survey uses."""
+def frame_numbers(params: SurveyParams) -> np.ndarray:
+    """Each frame the survey uses: its index in the video, or among the images."""
     if params.source == "video":
         assert params.video is not None
         capture = cv2.VideoCapture(params.video, cv2.CAP_FFMPEG)
         try:
-            return len(_chosen(_video_total(params, capture), params.max_frames))
+            return _chosen(_video_total(params, capture), params.max_frames)
         finally:
             capture.release()
-    return len(_chosen(len(list(Path(params.upload_dir).glob("image_*"))), params.max_frames))
+    return _chosen(len(list(Path(params.upload_dir).glob("image_*"))), params.max_frames)
+
+
+def frame_count(params: SurveyParams) -> int:
+    """How many frames the survey uses."""
+    return len(frame_numbers(params))
 
 
 def read_frames(params: SurveyParams, positions: range | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
@@ -404,7 +422,8 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
         # Fitted disc centres: the survey averages many views of each disc, and the
         # centroid's small errors repeat from view to view (see app.core.detection.disc_fit).
         detector = Detector.for_survey(classifiers.load(session, params.classifier_id), params.family)
-    count = frame_count(params)
+    numbers = frame_numbers(params)
+    count = len(numbers)
     # The scene's own points are tracked frame after frame, after detection (the cards
     # left out: their discs are tracked as discs).
     detecting_share = 0.35 if params.feature_tracks else 0.5
@@ -442,8 +461,10 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
 
     features = FeatureObservations.from_tracks(tracker.tracks()) if tracker is not None else None
     reconstructing = time.perf_counter()
+    shutter = RollingShutter(params.readout_frames) if params.readout_frames is not None else None
     result = survey(detections, params.width, params.height, params.marker_size_m, intrinsics=intrinsics,
-                    progress=progress, features=features)
+                    progress=progress, features=features, shutter=shutter,
+                    frame_numbers=numbers[sorted(by_position)] if shutter is not None else None)
     stage_s["reconstructing"] = time.perf_counter() - reconstructing
     plain = texture_warning(features, len(detections)) if features is not None else None
     if plain is not None:
@@ -453,6 +474,7 @@ def run_survey(params: SurveyParams, context: JobContext) -> JobResult:
     summary = result.summary()
     # The calibration trajectory: the camera of each frame used (None: not registered).
     summary.update({"frames_used": len(detections), "detections": found, "feature_tracks": params.feature_tracks,
+                    "readout_ms": params.readout_ms,
                     "stage_s": {stage: round(seconds, 3) for stage, seconds in stage_s.items()},
                     "trajectory": [pose.to_dict() if pose is not None else None for pose in result.trajectory]})
     assert context.environment_id is not None

@@ -182,6 +182,14 @@ def test_bad_uploads_are_refused_and_leave_nothing(client: TestClient, settings,
     assert reply.status_code == 422 and "shape" in reply.json()["detail"], reply.text
     reply = _post_video(client, env, video, max_frames="1")
     assert reply.status_code == 422
+    # A readout longer than a frame (33 ms at 30 frames a second), and one with images
+    # (no frame rate to count it in).
+    reply = _post_video(client, env, video, readout_ms="40")
+    assert reply.status_code == 422 and "readout_ms" in reply.json()["detail"], reply.text
+    png = cv2.imencode(".png", np.full((240, 320), 200, np.uint8))[1].tobytes()
+    reply = client.post(f"/environments/{env}/survey", files=[("images", ("a.png", png, "image/png"))],
+                        data={"readout_ms": "20"})
+    assert reply.status_code == 422 and "needs a video" in reply.json()["detail"], reply.text
     image = cv2.imencode(".png", np.full((240, 320), 200, np.uint8))[1].tobytes()
     reply = client.post(f"/environments/{env}/survey", files=[("images", ("a.png", image, "image/png")),
                                                                ("images", ("b.png", b"\x89PNG\r\n\x1a\nxx", "image/png"))])
@@ -189,6 +197,26 @@ def test_bad_uploads_are_refused_and_leave_nothing(client: TestClient, settings,
     uploads = settings.data_dir / "uploads"
     assert not uploads.exists() or not any(uploads.iterdir())
     assert client.get(f"/environments/{env}").json()["has_map"] is False
+
+
+def test_a_survey_models_the_readout_it_is_given(client: TestClient, room) -> None:
+    scene, _, video = room
+    env = _environment(client)
+    # The video's camera has a global shutter: a readout of 1 ms is a still camera to
+    # within a few hundredths of a pixel, and the map must come out as without it.
+    reply = _post_video(client, env, video, feature_tracks="false", readout_ms="1")
+    assert reply.status_code == 202, reply.text
+    body = wait_for_job(client, reply.json()["id"])
+    assert body["status"] == "succeeded", body
+    assert body["result"]["readout_ms"] == 1.0 and body["result"]["rms_px"] < 0.5
+    document = client.get(f"/environments/{env}/map").json()
+    assert abs(document["camera"]["K"][0][0] - 700.0) / 700.0 < 0.01
+    truth = {t.id: t.discs for t in scene.targets}
+    surveyed = {t["id"]: np.asarray(t["discs"]) for t in document["targets"]}
+    src = np.concatenate([surveyed[i] for i in sorted(surveyed)])
+    dst = np.concatenate([truth[i] for i in sorted(surveyed)])
+    rigid = similarity_from_points(src, dst, with_scale=False)
+    assert np.sqrt(np.mean(np.linalg.norm(rigid.apply(src) - dst, axis=1) ** 2)) < 0.01
 
 
 def test_more_images_than_the_limit_get_its_422_not_the_form_parsers_400(tmp_path: Path) -> None:

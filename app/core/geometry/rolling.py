@@ -108,9 +108,10 @@ class CameraMotion:
     Attributes
     ----------
     angular : (3,) ndarray
-        Rotation per frame interval (axis times angle, radians).
+        Rotation per frame interval (axis times angle, radians); or (N, 3), one per
+        point `seen` is given.
     linear : (3,) ndarray
-        Translation per frame interval (metres).
+        Translation per frame interval (metres); or (N, 3).
     """
 
     angular: np.ndarray
@@ -158,7 +159,7 @@ class CameraMotion:
         -------
         (N, 3) ndarray
         """
-        angle_axis = times[:, None] * self.angular[None, :]
+        angle_axis = times[:, None] * self.angular
         theta = np.linalg.norm(angle_axis, axis=1, keepdims=True)
         safe = np.where(theta > 1e-12, theta, 1.0)
         k = angle_axis / safe
@@ -166,7 +167,7 @@ class CameraMotion:
         # Rodrigues' formula, one rotation per point.
         rotated = (points * cos + np.cross(k, points) * sin
                    + k * np.sum(k * points, axis=1, keepdims=True) * (1 - cos))
-        return rotated + times[:, None] * self.linear[None, :]
+        return rotated + times[:, None] * self.linear
 
 
 class TrackedMotion(NamedTuple):

@@ -13,7 +13,9 @@ function over one `SurveyState` (docs/survey.md walks through them):
    (triangulation), with `bundle.bundle_adjust` and `prune.prune` in between
    (`policy.ShouldBundle`);
 4. `refine`: bundle adjustment over everything with a robust loss set by the video's own
-   noise, outlier removal, and again, until nothing changes;
+   noise, outlier removal, and again, until nothing changes (through a rolling shutter,
+   `shutter.undo_readout` moves each frame's observations to its middle row's moment
+   before every bundle adjustment, and `refine` runs once more);
 5. `scale.apply_metric_scale`: the scale of the printed cards;
 6. `result.survey_result`: each disc's uncertainty, warnings about weak parts of the map.
 7. `verify`: the lens against the cards' own (`verify.LensAgreement`: a map whose focal
@@ -29,7 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from app.core.detection import DetectedTarget
-from app.core.geometry import Camera
+from app.core.geometry import Camera, RollingShutter
 from app.core.survey.bundle import GROWTH_LOSS_SCALE, BundleInfo, bundle_adjust
 from app.core.survey.features import feature_supported, prune_features, register_by_features, triangulate_features
 from app.core.survey.lens import cards_lens, initial_camera
@@ -41,8 +43,10 @@ from app.core.survey.register import register_frames
 from app.core.survey.result import SurveyResult, survey_result, surveyed_views
 from app.core.survey.scale import apply_metric_scale
 from app.core.survey.seed import bootstrap
+from app.core.survey.shutter import undo_readout
 from app.core.survey.state import (
     Progress,
+    Readout,
     StageClock,
     SurveyError,
     SurveySettings,
@@ -70,6 +74,8 @@ def survey(
     card_prior_m: float | None = 1e-5,
     outlier_px: float = 3.0,
     features: FeatureObservations | None = None,
+    shutter: RollingShutter | None = None,
+    frame_numbers: Sequence[float] | None = None,
 ) -> SurveyResult:
     """Survey the targets seen in a calibration video.
 
@@ -140,6 +146,12 @@ def survey(
     if features is not None:
         features = features.in_frames(used)
     state = SurveyState.start(tracks, camera, settings, clock, warnings, features)
+    if shutter is not None and shutter.readout > 0:
+        numbers = np.arange(len(frames), dtype=np.float64) if frame_numbers is None else np.asarray(frame_numbers,
+                                                                                                   np.float64)
+        if len(numbers) != len(frames) or np.any(np.diff(numbers) <= 0):
+            raise SurveyError("frame_numbers must give each frame's place in the video, increasing")
+        state.readout = Readout.of(state, shutter, numbers[used])
     bootstrap(state)
     clock.lap(SurveyStage.INITIAL)
 
@@ -150,6 +162,13 @@ def survey(
                           "viewpoints, with at least two targets together in some frames")
 
     info = refine(state)
+    if state.readout is not None:
+        # The motion through the readout came from the poses of the map still growing:
+        # once more with the refined trajectory.
+        info = refine(state)
+        if card_lens is not None:
+            # The lens check judges the cards as the middle rows see them.
+            card_lens = cards_lens(state.tracks, width, height)
     clock.lap(SurveyStage.BUNDLE)
 
     clock.report(SurveyStage.SCALE, 0.9)
@@ -307,6 +326,7 @@ def adjust(state: SurveyState, free_intrinsics: bool, loss_scale: float, max_ite
     BundleInfo
         What the adjustment did.
     """
+    undo_readout(state)
     features = state.features if len(state.features) else None
     state.reconstruction, info = bundle_adjust(
         state.reconstruction, state.tracks, state.usable.repeat(4), free_intrinsics=free_intrinsics,

@@ -17,7 +17,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from app.core.geometry import Camera, Pose
+from app.core.geometry import Camera, Pose, RollingShutter
 from app.core.markers import DISC_CENTRES
 from app.core.survey.points import FeatureObservations
 
@@ -390,12 +390,40 @@ class Reconstruction:
         return err
 
 
+@dataclass(frozen=True, eq=False)
+class Readout:
+    """A survey's rolling shutter and its observations as detected.
+
+    Attributes
+    ----------
+    shutter : RollingShutter
+        The readout, in video frames.
+    frame_numbers : (F,) ndarray
+        Each survey frame's place in the video, in video frames (increasing).
+    raw_uv : (M, 2) ndarray
+        The disc observations as detected (the tracks' order).
+    raw_feature_uv : (K, 2) ndarray
+        The feature observations as tracked.
+    """
+
+    shutter: RollingShutter
+    frame_numbers: np.ndarray
+    raw_uv: np.ndarray
+    raw_feature_uv: np.ndarray
+
+    @classmethod
+    def of(cls, state: SurveyState, shutter: RollingShutter, frame_numbers: np.ndarray) -> Readout:
+        """The readout of a survey whose observations are still as detected."""
+        return cls(shutter, np.asarray(frame_numbers, np.float64), state.tracks.uv.copy(), state.features.uv.copy())
+
+
 @dataclass(eq=False)
 class SurveyState:
     """Everything the survey's stages share.
 
-    The observations and settings do not change; the reconstruction and the bookkeeping
-    below do, stage by stage.
+    The settings do not change, nor do the observations except through a rolling
+    shutter (`shutter.undo_readout` moves their pixels); the reconstruction and the
+    bookkeeping below do, stage by stage.
     """
 
     tracks: Tracks
@@ -419,6 +447,8 @@ class SurveyState:
     feature_usable: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (K,) views not found wrong
     feature_attempted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (P,) views when last tried
     feature_tried: dict[int, int] = field(default_factory=dict)  # frame -> feature points seen when last tried
+    # A rolling shutter: the observations are moved before each bundle adjustment (`shutter.undo_readout`).
+    readout: Readout | None = None
 
     @classmethod
     def start(cls, tracks: Tracks, camera: Camera, settings: SurveySettings, clock: StageClock,
