@@ -228,7 +228,8 @@ def _survey(args: argparse.Namespace) -> int:
 
         try:
             job = client.survey(args.environment, args.video, progress, max_frames=args.max_frames,
-                                marker_size_m=args.marker_size, feature_tracks=args.feature_tracks)
+                                marker_size_m=args.marker_size, feature_tracks=args.feature_tracks,
+                                readout_ms=args.readout_ms)
         except (ApiError, JobFailed) as error:
             bar.close()
             return _fail("survey", error)
@@ -266,12 +267,26 @@ def _frames_of(source: str) -> Iterator[tuple[str, bytes]]:
         capture.release()
 
 
+def _video_frame_rate(source: str) -> float | None:
+    """The frame rate a video file states, or None (a folder, a camera, no rate)."""
+    import cv2
+
+    if Path(source).is_dir() or source.isdigit():
+        return None
+    capture = cv2.VideoCapture(source)
+    try:
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0) if capture.isOpened() else 0.0
+    finally:
+        capture.release()
+    return fps if fps > 0 else None
+
+
 def _track(args: argparse.Namespace) -> int:
     import csv
     import json
 
     from app.client import ApiError, TrackRefused
-    from app.schemas import FreeDConnection, Smoothing, TrackConfig
+    from app.schemas import FreeDConnection, RollingShutterModel, Smoothing, TrackConfig
 
     names: list[str] = []
 
@@ -296,7 +311,14 @@ def _track(args: argparse.Namespace) -> int:
             return _fail("track", ValueError(f"--freed wants HOST:PORT, got {args.freed!r}"))
         fields["freed"] = FreeDConnection(host=host or None, port=int(port) if port else None,
                                           camera_id=1 if args.camera_id is None else args.camera_id)
+    if args.readout_ms is not None:
+        frame_rate = args.frame_rate or _video_frame_rate(args.source)
+        if frame_rate is None:
+            return _fail("track", ValueError("--readout-ms needs --frame-rate: the source states no frame rate"))
+        fields["rolling_shutter"] = {"readout_ms": args.readout_ms, "frame_rate": frame_rate}
     try:
+        if "rolling_shutter" in fields:
+            fields["rolling_shutter"] = RollingShutterModel.model_validate(fields["rolling_shutter"])
         config = TrackConfig(**fields) if fields else None  # type: ignore[arg-type]
     except ValueError as error:
         return _fail("track", error)
@@ -590,6 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
     survey.add_argument("--feature-tracks", action=argparse.BooleanOptionalAction, default=True,
                         help="track the walls' own texture beside the cards (default); --no-feature-tracks: "
                              "the cards alone")
+    survey.add_argument("--readout-ms", type=float,
+                        help="the camera's rolling shutter readout, first row to last, ms (a phone's: 10-30); the "
+                             "survey then models it (default: a global shutter)")
     on_service(survey)
     survey.set_defaults(run=_survey)
 
@@ -609,6 +634,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "FreeD output, if it has one)")
     track.add_argument("--camera-id", type=int, help="the FreeD camera id (0-255, default 1)")
     track.add_argument("--no-freed", action="store_true", help="send no FreeD, even to the environment's output")
+    track.add_argument("--readout-ms", type=float,
+                       help="the camera's rolling shutter readout, first row to last, ms (a phone's: 10-30); each "
+                            "pose is then fitted with the camera's motion through it (default: a global shutter)")
+    track.add_argument("--frame-rate", type=float,
+                       help="frames a second of the source, for --readout-ms (default: the video file's own)")
     track.add_argument("-o", "--output", type=Path, help="write the poses here (default: standard output)")
     on_service(track)
     track.set_defaults(run=_track)

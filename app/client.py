@@ -327,10 +327,14 @@ class Client:
             time.sleep(poll_s)
 
     def start_survey(self, environment_id: int, video: str | Path | BinaryIO, *, max_frames: int | None = None,
-                     marker_size_m: float | None = None, feature_tracks: bool = True) -> JobOut:
+                     marker_size_m: float | None = None, feature_tracks: bool = True,
+                     readout_ms: float | None = None) -> JobOut:
         """Upload a video of the room and start its survey (a job); ``feature_tracks=False``:
-        the cards alone, without the walls' own texture."""
+        the cards alone, without the walls' own texture; ``readout_ms``: the camera's
+        rolling shutter readout, first row to last (a phone's: 10-30 ms)."""
         form: dict[str, str] = {"feature_tracks": "true" if feature_tracks else "false"}
+        if readout_ms is not None:
+            form["readout_ms"] = str(readout_ms)
         if max_frames is not None:
             form["max_frames"] = str(max_frames)
         if marker_size_m is not None:

@@ -224,6 +224,13 @@ def test_survey_track_and_map_commands_on_a_running_service(server: Server, room
                  *service]) == 0
     lines = [json.loads(line) for line in (tmp_path / "p.jsonl").read_text().splitlines()]
     assert len(lines) == 60 and lines[0]["type"] == "frame" and lines[0]["frame"] == "0"
+    # A rolling shutter's readout: the frame rate from the video file, or given.
+    assert main(["track", str(room.frames_dir), "-e", str(truth), "--readout-ms", "1", *service]) == 1
+    assert "--frame-rate" in capsys.readouterr().err
+    assert main(["track", str(room.video), "-e", str(truth), "--readout-ms", "1", "--format", "jsonl", "-o",
+                 str(tmp_path / "r.jsonl"), *service]) == 0
+    rolled = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
+    assert len(rolled) == 60 and sum(line["pose"] is not None for line in rolled) >= 0.8 * 60
 
     assert main(["track", str(tmp_path / "nothing.mp4"), "-e", str(truth), *service]) == 1
     assert main(["map", "show", "-e", "99999", *service]) == 1

@@ -214,10 +214,7 @@ class TrackState:
         if estimate is not None:
             if abs(estimate.focal_px - camera.fx) > 1e-9 * camera.fx:
                 # A zoom lens (estimate_focal): predict with the focal length just measured.
-                K = camera.K.copy()
-                K[0, :2] *= estimate.focal_px / camera.fx  # fx and the skew
-                K[1, 1] *= estimate.focal_px / camera.fx
-                seen = _Seen(seq, estimate.pose, Camera(K, camera.dist, camera.width, camera.height))
+                seen = _Seen(seq, estimate.pose, camera.with_focal(estimate.focal_px))
             else:
                 seen = _Seen(seq, estimate.pose, camera)
         with self._lock:

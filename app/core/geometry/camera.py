@@ -449,6 +449,24 @@ class Camera:
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
         return Camera(K, self.dist, int(width), int(height))
 
+    def with_focal(self, focal_px: float) -> Camera:
+        """The same camera zoomed to another focal length (fx, the skew and fy scaled alike).
+
+        Parameters
+        ----------
+        focal_px : float
+            The new fx, pixels.
+
+        Returns
+        -------
+        Camera
+        """
+        scale = focal_px / self.fx
+        K = self.K.copy()
+        K[0, :2] *= scale
+        K[1, 1] *= scale
+        return Camera(K, self.dist, self.width, self.height)
+
     # ---- parameters -------------------------------------------------------------------
 
     @property

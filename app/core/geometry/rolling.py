@@ -367,7 +367,7 @@ def rolling_shutter_pose(
         first = estimate_pose(moving, camera, method, estimate_focal, prior)
     elif first is None:
         first = estimate_pose(observations, camera, method, estimate_focal, prior)
-    lens = camera if not estimate_focal else _with_focal(camera, first.focal_px)
+    lens = camera if not estimate_focal else camera.with_focal(first.focal_px)
     start_motion = CameraMotion.still() if track is None else CameraMotion.between(track.previous, first.pose,
                                                                                       track.frames_since)
     # Targets refused as outliers may only be sheared by the readout: the motion is
@@ -379,18 +379,9 @@ def rolling_shutter_pose(
         image, world = _stack([o for o in observations if o.id in ids])
         pose, motion = _fit_motion(lens, world, lens.undistort_pixels(image),
                                    shutter.row_times(image[:, 1], camera.height), first.pose, start_motion, track)
-        final = estimate_pose(undo_rolling_shutter(observations, camera, shutter, pose, motion), camera, method,
+        final = estimate_pose(undo_rolling_shutter(observations, lens, shutter, pose, motion), camera, method,
                               estimate_focal, prior)
         if best is None or (final.n_targets, -final.rms_px) > (best.estimate.n_targets, -best.estimate.rms_px):
             best = RollingPose(final, motion)
     assert best is not None
     return best
-
-
-def _with_focal(camera: Camera, focal_px: float) -> Camera:
-    """`camera` with its focal length scaled to `focal_px` (a zoom lens)."""
-    K = camera.K.copy()
-    scale = focal_px / camera.fx
-    K[0, :2] *= scale
-    K[1, 1] *= scale
-    return Camera(K, camera.dist, camera.width, camera.height)
