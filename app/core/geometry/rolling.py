@@ -78,7 +78,19 @@ class RollingShutter:
 
     @classmethod
     def from_seconds(cls, readout_s: float, fps: float) -> RollingShutter:
-        """The readout of `readout_s` seconds at `fps` frames a second."""
+        """The readout of `readout_s` seconds at `fps` frames a second.
+
+        Parameters
+        ----------
+        readout_s : float
+            First row's read to the last's, seconds.
+        fps : float
+            Frames a second.
+
+        Returns
+        -------
+        RollingShutter
+        """
         return cls(readout_s * fps)
 
     def row_times(self, rows: np.ndarray, height: int) -> np.ndarray:
@@ -119,7 +131,12 @@ class CameraMotion:
 
     @classmethod
     def still(cls) -> CameraMotion:
-        """No motion."""
+        """No motion.
+
+        Returns
+        -------
+        CameraMotion
+        """
         return cls(np.zeros(3), np.zeros(3))
 
     @classmethod
@@ -190,7 +207,15 @@ class PoseHistory:
         self._run = 0  # posed frames in a row
 
     def add(self, frame: int, pose: Pose | None) -> None:
-        """Remember frame `frame`'s pose (None: it had none)."""
+        """Remember a frame's pose.
+
+        Parameters
+        ----------
+        frame : int
+            The frame's place in the stream.
+        pose : Pose or None
+            Its pose; None: it had none.
+        """
         if pose is None:
             self._poses, self._run = [], 0
             return
@@ -200,7 +225,18 @@ class PoseHistory:
         self._run += 1
 
     def motion_for(self, frame: int) -> TrackedMotion | None:
-        """The track's last pose and steps before frame `frame`, or None without a recent pose."""
+        """What the track knows of the camera's motion before a frame.
+
+        Parameters
+        ----------
+        frame : int
+            The frame's place in the stream.
+
+        Returns
+        -------
+        TrackedMotion or None
+            The track's last pose and steps; None without a pose within `MAX_GAP`.
+        """
         if not self._poses or not 0 < frame - self._poses[-1][0] <= MAX_GAP:
             return None
         last_frame, last = self._poses[-1]

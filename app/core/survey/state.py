@@ -413,7 +413,21 @@ class Readout:
 
     @classmethod
     def of(cls, state: SurveyState, shutter: RollingShutter, frame_numbers: np.ndarray) -> Readout:
-        """The readout of a survey whose observations are still as detected."""
+        """The readout of a survey whose observations are still as detected.
+
+        Parameters
+        ----------
+        state : SurveyState
+            The survey, before any observation is moved.
+        shutter : RollingShutter
+            The readout, in video frames.
+        frame_numbers : (F,) ndarray
+            Each survey frame's place in the video, in video frames.
+
+        Returns
+        -------
+        Readout
+        """
         return cls(shutter, np.asarray(frame_numbers, np.float64), state.tracks.uv.copy(), state.features.uv.copy())
 
 
