@@ -226,6 +226,12 @@ def test_a_survey_uploaded_through_the_page_maps_and_shows_every_card(tmp_path: 
         # 30 of the 90 frames with the cards alone: a thin survey, so that it warns about some cards.
         page.fill("#survey-frames", "30")
         page.uncheck("#survey-features")
+        # A rolling shutter's readout reaches the service: one longer than a frame is refused, said on the page.
+        page.fill("#survey-readout", "40")
+        page.click("button:text-is('Upload and survey')")
+        page.locator("#notice").wait_for(state="visible")
+        assert "readout_ms" in page.locator("#notice").inner_text()
+        page.fill("#survey-readout", "")
         page.click("button:text-is('Upload and survey')")
         # The job's progress is shown live: record what the page shows while it runs.
         seen: list[float] = []

@@ -45,6 +45,8 @@ export async function surveyPage(view, environmentId) {
   const size = h("input", { type: "number", min: 10, step: "any", value: environment.marker_size_m * 1000 });
   const maxFrames = h("input", { type: "number", min: 2, placeholder: "default", id: "survey-frames" });
   const features = h("input", { type: "checkbox", id: "survey-features", checked: true });
+  const readout = h("input", { type: "number", min: 0.1, max: 100, step: 0.1, placeholder: "none",
+                               id: "survey-readout" });
   const uploadBar = h("progress", { max: 1, value: 0 });
   const uploadText = h("span", { class: "muted" }, "");
   const jobBar = h("progress", { id: "job-progress", max: 1, value: 0 });
@@ -112,6 +114,7 @@ export async function surveyPage(view, environmentId) {
     data.append("marker_size_m", String(Number(size.value) / 1000));
     if (maxFrames.value) data.append("max_frames", maxFrames.value);
     data.append("feature_tracks", features.checked ? "true" : "false");
+    if (readout.value) data.append("readout_ms", readout.value);
     start.disabled = true;
     outcome.replaceChildren();
     const began = performance.now();
@@ -135,6 +138,8 @@ export async function surveyPage(view, environmentId) {
     h("label", {}, "Printed card side (mm)", size),
     h("label", {}, "Frames to use", maxFrames),
     h("label", { title: "Unticked: the cards alone" }, h("span", {}, features, " track the walls' texture too"), ""),
+    h("label", { title: "A phone's rolling shutter, first row to last (10-30 ms); empty: a global shutter" },
+      "Readout (ms)", readout),
     start);
 
   view.append(
