@@ -7,13 +7,15 @@ to absorb the shear, and the lens check may refuse the footage.
 
 Before every bundle adjustment (`reconstruction.adjust`), `undo_readout` gives each
 registered frame its motion through the readout from its neighbours in the trajectory
-(the step from the frame before to the frame after), and moves every observation, discs
-and feature points alike, from where it was detected to where the frame's middle-row
-pose sees its point. So the poses, the map and the motion improve together as the map
-grows and is refined.
+(the steps from the frame before and to the frame after: a velocity and its change),
+and moves every observation, discs and feature points alike, from where it was detected
+to where the frame's middle-row pose sees its point. So the poses, the map and the
+motion improve together as the map grows and is refined.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -21,16 +23,30 @@ import numpy as np
 from app.core.geometry import CameraMotion, RollingShutter
 from app.core.survey.state import Readout, Reconstruction, SurveyState
 
-__all__ = ["frame_motions", "undo_readout"]
+__all__ = ["FrameMotions", "frame_motions", "undo_readout"]
 
 #: The farthest (video frames) a neighbour may be to give a frame its motion.
 MAX_NEIGHBOUR_FRAMES = 10.0
 
 
-def frame_motions(reconstruction: Reconstruction, frame_numbers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each registered frame's motion, per video frame, from its registered neighbours:
-    the step from the one before to the one after (the step to or from one of them where
-    the other is missing or too far); none without a neighbour.
+@dataclass(frozen=True)
+class FrameMotions:
+    """Each survey frame's motion through its readout, in its camera axes (`frame_motions`)."""
+
+    angular: np.ndarray  # (F, 3) rad per video frame
+    linear: np.ndarray  # (F, 3) m per video frame
+    angular_change: np.ndarray  # (F, 3) rad per video frame squared
+    linear_change: np.ndarray  # (F, 3) m per video frame squared
+
+
+def frame_motions(reconstruction: Reconstruction, frame_numbers: np.ndarray) -> FrameMotions:
+    """Each registered frame's motion, per video frame, from its registered neighbours.
+
+    With a neighbour on each side, the velocity is the mean of the steps to and from it,
+    and the acceleration their change: a turn speeding up through the readout shears
+    the rows unevenly, and the change of the frame's velocity across the readout is
+    what a constant velocity leaves. With one neighbour, the step to or from it alone;
+    with none (or farther than `MAX_NEIGHBOUR_FRAMES`), no motion.
 
     Parameters
     ----------
@@ -40,12 +56,13 @@ def frame_motions(reconstruction: Reconstruction, frame_numbers: np.ndarray) -> 
 
     Returns
     -------
-    angular, linear : (F, 3) ndarray
-        Per video frame, in each frame's camera axes (zero where unknown).
+    FrameMotions
+        Per video frame (and per video frame squared), in each frame's camera axes; zero
+        where unknown.
     """
     registered = np.flatnonzero(reconstruction.registered())
     n = len(reconstruction.rvec)
-    angular, linear = np.zeros((n, 3)), np.zeros((n, 3))
+    motions = FrameMotions(np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)))
     for k, f in enumerate(registered):
         before = registered[k - 1] if k > 0 else None
         after = registered[k + 1] if k + 1 < len(registered) else None
@@ -53,18 +70,23 @@ def frame_motions(reconstruction: Reconstruction, frame_numbers: np.ndarray) -> 
             before = None
         if after is not None and frame_numbers[after] - frame_numbers[f] > MAX_NEIGHBOUR_FRAMES:
             after = None
-        a = before if before is not None else f
-        b = after if after is not None else f
-        if a == b:
+        steps = [CameraMotion.between(reconstruction.pose(a), reconstruction.pose(b), float(frame_numbers[b]
+                                                                                         - frame_numbers[a]))
+                 for a, b in ((before, f), (f, after)) if a is not None and b is not None]
+        if not steps:
             continue
-        motion = CameraMotion.between(reconstruction.pose(a), reconstruction.pose(b),
-                                      float(frame_numbers[b] - frame_numbers[a]))
-        angular[f], linear[f] = motion.angular, motion.linear
-    return angular, linear
+        motions.angular[f] = np.mean([m.angular for m in steps], axis=0)
+        motions.linear[f] = np.mean([m.linear for m in steps], axis=0)
+        if len(steps) == 2:
+            # The two steps' velocities belong half a step before and after the frame.
+            span = 0.5 * float(frame_numbers[after] - frame_numbers[before])
+            motions.angular_change[f] = (steps[1].angular - steps[0].angular) / span
+            motions.linear_change[f] = (steps[1].linear - steps[0].linear) / span
+    return motions
 
 
 def _shift(reconstruction: Reconstruction, shutter: RollingShutter, frame: np.ndarray, X: np.ndarray,
-           uv: np.ndarray, angular: np.ndarray, linear: np.ndarray) -> np.ndarray:
+           uv: np.ndarray, motions: FrameMotions) -> np.ndarray:
     """(M, 2) how far the readout moved each observation (raw pixels `uv` of points `X`
     in `frame`) from where the frame's middle-row pose sees it; zero where unknown."""
     shift = np.zeros_like(uv)
@@ -73,10 +95,13 @@ def _shift(reconstruction: Reconstruction, shutter: RollingShutter, frame: np.nd
         return shift
     camera = reconstruction.camera
     f = frame[known]
-    R = np.stack([cv2.Rodrigues(r.reshape(3, 1))[0] for r in reconstruction.rvec[f]]) if len(f) else np.zeros((0, 3, 3))
+    R = np.stack([cv2.Rodrigues(r.reshape(3, 1))[0] for r in reconstruction.rvec[f]])
     at_frame = (R @ X[known][:, :, None])[:, :, 0] + reconstruction.tvec[f]
     times = shutter.row_times(uv[known, 1], camera.height)
-    seen = CameraMotion(angular[f], linear[f]).seen(at_frame, times)
+    # Moved by v t + a t^2 / 2: the velocity at the row's time, averaged from the frame's.
+    half = 0.5 * times[:, None]
+    seen = CameraMotion(motions.angular[f] + half * motions.angular_change[f],
+                        motions.linear[f] + half * motions.linear_change[f]).seen(at_frame, times)
     shift[known] = camera.project(seen) - camera.project(at_frame)
     return shift
 
@@ -100,16 +125,16 @@ def undo_readout(state: SurveyState) -> float:
     if readout is None:
         return 0.0
     rec = state.reconstruction
-    angular, linear = frame_motions(rec, readout.frame_numbers)
+    motions = frame_motions(rec, readout.frame_numbers)
     tracks = state.tracks
-    shift = _shift(rec, readout.shutter, tracks.frame, rec.X[tracks.point], readout.raw_uv, angular, linear)
+    shift = _shift(rec, readout.shutter, tracks.frame, rec.X[tracks.point], readout.raw_uv, motions)
     # In place: the views' pixels are a view of the tracks'.
     tracks.uv[...] = readout.raw_uv - shift
     largest = float(np.abs(shift).max()) if len(shift) else 0.0
     features = state.features
     if len(features.frame):
         feature_shift = _shift(rec, readout.shutter, features.frame, state.feature_X[features.track],
-                               readout.raw_feature_uv, angular, linear)
+                               readout.raw_feature_uv, motions)
         features.uv[...] = readout.raw_feature_uv - feature_shift
         largest = max(largest, float(np.abs(feature_shift).max()))
     return largest
