@@ -265,7 +265,7 @@ def submit_survey(
     readout_frames = None
     if readout_ms is not None:
         if video is None:
-            raise Invalid("readout_ms: a rolling shutter needs a video (its frame rate times the frames apart)")
+            raise Invalid("readout_ms: a rolling shutter needs a video: the readout is counted in its frames")
         if not video.fps > 0:
             raise Invalid("readout_ms: the video does not state its frame rate")
         readout_frames = readout_ms * video.fps / 1000.0
