@@ -471,7 +471,7 @@ _EXAMPLE_SURVEY_RESULT: dict[str, Any] = {
     "card_warnings": [{"kind": "few views", "target_ids": [12], "message": _EXAMPLE_WARNING, "frames": []}],
     "timing_s": {"intrinsics": 0.4, "initial": 0.2, "register": 3.1, "bundle": 5.8, "scale": 0.1,
                  "covariance": 0.9},
-    "frames_used": 4, "detections": 7, "feature_tracks": True,
+    "frames_used": 4, "detections": 7, "feature_tracks": True, "readout_ms": None,
     "stage_s": {"detecting": 0.21, "tracking": 0.12, "reconstructing": 0.35},
     "trajectory": [
         {"R": _EXAMPLE_R, "t": [-0.5918, -0.311, -1.742], "position": [0.95, 0.42, 1.55]},
