@@ -286,7 +286,7 @@ def _track(args: argparse.Namespace) -> int:
     import json
 
     from app.client import ApiError, TrackRefused
-    from app.schemas import FreeDConnection, RollingShutterModel, Smoothing, TrackConfig
+    from app.schemas import FreeDConnection, Smoothing, TrackConfig
 
     names: list[str] = []
 
@@ -317,8 +317,6 @@ def _track(args: argparse.Namespace) -> int:
             return _fail("track", ValueError("--readout-ms needs --frame-rate: the source states no frame rate"))
         fields["rolling_shutter"] = {"readout_ms": args.readout_ms, "frame_rate": frame_rate}
     try:
-        if "rolling_shutter" in fields:
-            fields["rolling_shutter"] = RollingShutterModel.model_validate(fields["rolling_shutter"])
         config = TrackConfig(**fields) if fields else None  # type: ignore[arg-type]
     except ValueError as error:
         return _fail("track", error)

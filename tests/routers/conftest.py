@@ -20,17 +20,29 @@ from app.sim import degrade, scenes
 Pan = tuple[scenes.Scene, Camera, list[Pose], list[bytes], list[set[int]]]
 
 
+def pan_room(rng: np.random.Generator) -> tuple[Camera, scenes.Scene]:
+    """The pans' camera and room: 24 cards of 0.2 m in a 6 x 5 x 3 m room."""
+    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
+    return camera, scenes.room_scene(rng, (6.0, 5.0, 3.0), n_targets=24, marker_size_m=0.2)
+
+
+def pan_poses(first_deg: float, step_deg: float, n: int) -> list[Pose]:
+    """A camera near the room's middle turning `step_deg` a frame from `first_deg`,
+    drifting 1 cm a frame."""
+    eye = np.array([3.0, 2.5, 1.5])
+    poses = []
+    for k in range(n):
+        yaw = np.deg2rad(first_deg + step_deg * k)
+        poses.append(Pose.look_at(eye + [0.01 * k, 0.0, 0.0], eye + [np.cos(yaw), np.sin(yaw), -0.05]))
+    return poses
+
+
 @pytest.fixture(scope="module")
 def pan() -> Pan:
     """A camera turning 1.5 degrees a frame in a room: cards enter the view on the way."""
     rng = np.random.default_rng(1)
-    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
-    scene = scenes.room_scene(rng, (6.0, 5.0, 3.0), n_targets=24, marker_size_m=0.2)
-    eye = np.array([3.0, 2.5, 1.5])
-    poses = []
-    for k in range(10):
-        yaw = np.deg2rad(210 + 1.5 * k)
-        poses.append(Pose.look_at(eye + [0.01 * k, 0.0, 0.0], eye + [np.cos(yaw), np.sin(yaw), -0.05]))
+    camera, scene = pan_room(rng)
+    poses = pan_poses(210.0, 1.5, 10)
     frames, visible = [], []
     for pose in poses:
         image, truth = scenes.render_frame(scene, camera, pose, rng, degrade.PRESETS["none"].sample(rng))

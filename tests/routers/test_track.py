@@ -13,7 +13,7 @@ from starlette.websockets import WebSocketDisconnect
 from app.core.geometry.camera import Camera, Pose
 from app.sim import degrade, scenes
 from app.sim.walks import Walk
-from tests.routers.conftest import Pan, stream_frames
+from tests.routers.conftest import Pan, pan_poses, pan_room, stream_frames
 
 #: A scene of three cards, its camera, three poses and their frames (JPEG).
 World = tuple[scenes.Scene, Camera, list[Pose], list[bytes]]
@@ -328,13 +328,8 @@ def rolling_pan() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes]]:
     """A phone turning 3 degrees a frame (90 degrees a second) in a room of cards, its
     rows read out over 20 ms at 30 frames a second."""
     rng = np.random.default_rng(4)
-    camera = Camera.pinhole(820.0, 640, 480, dist=[-0.1, 0.0, 0.0, 0.0, 0.0])
-    scene = scenes.room_scene(rng, (6.0, 5.0, 3.0), n_targets=24, marker_size_m=0.2)
-    eye = np.array([3.0, 2.5, 1.5])
-    poses = []
-    for k in range(16):
-        yaw = np.deg2rad(200 + 3.0 * k)
-        poses.append(Pose.look_at(eye + [0.01 * k, 0.0, 0.0], eye + [np.cos(yaw), np.sin(yaw), -0.05]))
+    camera, scene = pan_room(rng)
+    poses = pan_poses(200.0, 3.0, 16)
     readouts = Walk("pan", poses, fps=30.0).readouts(0.020)
     frames = [cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
               for image, _ in scenes.render_walk(scene, camera, poses, rng, "none", readouts=readouts)]

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from app.core.geometry.camera import Camera, Pose
-from app.core.geometry.pose import PoseEstimate, TargetObservation, estimate_pose
+from app.core.geometry.pose import PoseEstimate, TargetObservation, _stack, estimate_pose
 
 __all__ = [
     "CameraMotion",
@@ -203,7 +203,7 @@ class PoseHistory:
     """
 
     def __init__(self) -> None:
-        self._poses: list[tuple[int, Pose]] = []  # (frame, pose), the last three
+        self._poses: list[tuple[int, Pose]] = []  # (frame, pose), the last two
         self._run = 0  # posed frames in a row
 
     def add(self, frame: int, pose: Pose | None) -> None:
@@ -221,7 +221,7 @@ class PoseHistory:
             return
         if self._poses and not 0 < frame - self._poses[-1][0] <= MAX_GAP:
             self._poses, self._run = [], 0
-        self._poses = [*self._poses[-2:], (frame, pose)]
+        self._poses = [*self._poses[-1:], (frame, pose)]
         self._run += 1
 
     def motion_for(self, frame: int) -> TrackedMotion | None:
@@ -252,11 +252,6 @@ class RollingPose(NamedTuple):
 
     estimate: PoseEstimate
     motion: CameraMotion
-
-
-def _stack(observations: Sequence[TargetObservation]) -> tuple[np.ndarray, np.ndarray]:
-    return (np.concatenate([o.image for o in observations]).astype(np.float64),
-            np.concatenate([o.map for o in observations]).astype(np.float64))
 
 
 def undo_rolling_shutter(observations: Sequence[TargetObservation], camera: Camera, shutter: RollingShutter,
@@ -412,7 +407,7 @@ def rolling_shutter_pose(
     subsets = [set(first.target_ids)] + ([{o.id for o in observations}] if first.rejected_ids else [])
     best: RollingPose | None = None
     for ids in subsets:
-        image, world = _stack([o for o in observations if o.id in ids])
+        image, world, _ = _stack([o for o in observations if o.id in ids])
         pose, motion = _fit_motion(lens, world, lens.undistort_pixels(image),
                                    shutter.row_times(image[:, 1], camera.height), first.pose, start_motion, track)
         final = estimate_pose(undo_rolling_shutter(observations, lens, shutter, pose, motion), camera, method,

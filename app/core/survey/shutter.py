@@ -17,10 +17,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from app.core.geometry import CameraMotion, RollingShutter
+from app.core.survey.features import _rotations
 from app.core.survey.state import Readout, Reconstruction, SurveyState
 
 __all__ = ["FrameMotions", "frame_motions", "undo_readout"]
@@ -85,18 +85,18 @@ def frame_motions(reconstruction: Reconstruction, frame_numbers: np.ndarray) -> 
     return motions
 
 
-def _shift(reconstruction: Reconstruction, shutter: RollingShutter, frame: np.ndarray, X: np.ndarray,
-           uv: np.ndarray, motions: FrameMotions) -> np.ndarray:
+def _shift(state: SurveyState, shutter: RollingShutter, frame: np.ndarray, X: np.ndarray, uv: np.ndarray,
+           motions: FrameMotions) -> np.ndarray:
     """(M, 2) how far the readout moved each observation (raw pixels `uv` of points `X`
     in `frame`) from where the frame's middle-row pose sees it; zero where unknown."""
     shift = np.zeros_like(uv)
-    known = np.isfinite(X[:, 0]) & reconstruction.registered()[frame]
+    known = np.isfinite(X[:, 0]) & state.reconstruction.registered()[frame]
     if not known.any():
         return shift
-    camera = reconstruction.camera
+    camera = state.reconstruction.camera
     f = frame[known]
-    R = np.stack([cv2.Rodrigues(r.reshape(3, 1))[0] for r in reconstruction.rvec[f]])
-    at_frame = (R @ X[known][:, :, None])[:, :, 0] + reconstruction.tvec[f]
+    R, t = _rotations(state, f)
+    at_frame = (R @ X[known][:, :, None])[:, :, 0] + t
     times = shutter.row_times(uv[known, 1], camera.height)
     # Moved by v t + a t^2 / 2: the velocity at the row's time, averaged from the frame's.
     half = 0.5 * times[:, None]
@@ -127,13 +127,13 @@ def undo_readout(state: SurveyState) -> float:
     rec = state.reconstruction
     motions = frame_motions(rec, readout.frame_numbers)
     tracks = state.tracks
-    shift = _shift(rec, readout.shutter, tracks.frame, rec.X[tracks.point], readout.raw_uv, motions)
+    shift = _shift(state, readout.shutter, tracks.frame, rec.X[tracks.point], readout.raw_uv, motions)
     # In place: the views' pixels are a view of the tracks'.
     tracks.uv[...] = readout.raw_uv - shift
     largest = float(np.abs(shift).max()) if len(shift) else 0.0
     features = state.features
     if len(features.frame):
-        feature_shift = _shift(rec, readout.shutter, features.frame, state.feature_X[features.track],
+        feature_shift = _shift(state, readout.shutter, features.frame, state.feature_X[features.track],
                                readout.raw_feature_uv, motions)
         features.uv[...] = readout.raw_feature_uv - feature_shift
         largest = max(largest, float(np.abs(feature_shift).max()))
