@@ -10,6 +10,7 @@ import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -26,6 +27,7 @@ from app.core.geometry import (
     alignment_residuals,
     estimate_pose,
     extrapolate,
+    position_covariance,
     rolling_shutter_pose,
     similarity_from_points,
 )
@@ -321,15 +323,58 @@ def track_errors(frames: list[list[DetectedTarget]], truths: list[FrameTruth], d
     return track_walk(frames, truths, discs, camera, to_world)[0]
 
 
+@dataclass(frozen=True)
+class JointMapCovariance:
+    """A survey's joint covariance of its discs (`SurveyResult.disc_covariance`), for
+    poses that take the map's uncertainty from it rather than from each card's
+    ``std_m`` (what /track has)."""
+
+    rows: dict[int, np.ndarray]  # target id -> its 12 rows (x, y, z of each disc)
+    covariance: np.ndarray
+    cards_apart: bool = False  # keep each card's own block only: cards independent
+
+    @classmethod
+    def of(cls, result: SurveyResult, cards_apart: bool = False) -> JointMapCovariance:
+        assert result.disc_covariance is not None
+        return cls({t.id: np.arange(12 * k, 12 * k + 12) for k, t in enumerate(result.targets)},
+                   result.disc_covariance, cards_apart)
+
+    def of_cards(self, ids: list[int]) -> np.ndarray:
+        """The covariance of the cards' stacked discs (m^2)."""
+        rows = np.concatenate([self.rows[i] for i in ids])
+        covariance = self.covariance[np.ix_(rows, rows)]
+        if self.cards_apart:
+            same = np.repeat(np.arange(len(ids)), 12)
+            covariance = np.where(same[:, None] == same[None, :], covariance, 0.0)
+        return covariance
+
+    def position_part(self, pose: Pose, camera: Camera, observations: list[TargetObservation]) -> np.ndarray:
+        """What the map's errors do to the camera centre of a least-squares pose, to
+        first order: the pose moves by ``-(J^T J)^-1 J^T dr`` when the discs move by
+        ``dX`` (``dr = J_t R dX``: the discs enter through ``R X + t``)."""
+        world = np.concatenate([o.map for o in observations])
+        _, jac = cv2.projectPoints(world, pose.rvec, pose.t, camera.K, camera.dist)
+        J = jac[:, :6]
+        moved = np.zeros((len(J), 3 * len(world)))
+        for k in range(len(world)):
+            moved[2 * k : 2 * k + 2, 3 * k : 3 * k + 3] = J[2 * k : 2 * k + 2, 3:6] @ pose.R
+        D = -np.linalg.solve(J.T @ J, J.T @ moved)
+        return position_covariance(pose, D @ self.of_cards([o.id for o in observations]) @ D.T)
+
+
 def track_walk(frames: list[list[DetectedTarget]], truths: list[FrameTruth], discs: dict[int, np.ndarray],
                camera: Camera, to_world: Similarity | None = None, std: dict[int, np.ndarray] | None = None,
-               shutter: RollingShutter | None = None) -> tuple[np.ndarray, np.ndarray]:
+               shutter: RollingShutter | None = None, joint: JointMapCovariance | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """`track_errors`, and each pose's normalised squared position error against the
     truth (NEES, e^T C^-1 e with the pose's `covariance_position`; chi-square with 3
     degrees of freedom if the covariance is honest). With `std` (each card's ``std_m``)
-    the poses carry the map's uncertainty, as /track's do with a surveyed map. With
-    `shutter` the frames are tracked as /track does with its ``rolling_shutter`` config:
-    the motion through each readout fitted with the pose, from the track's last poses."""
+    the poses carry the map's uncertainty, as /track's do with a surveyed map; with
+    `joint` they carry it from the survey's joint covariance instead, added to the
+    covariance of the pose's own fit. With `shutter` the frames are tracked as /track
+    does with its ``rolling_shutter`` config: the motion through each readout fitted with
+    the pose, from the track's last poses."""
+    assert joint is None or (std is None and shutter is None)
     errors, nees = [], []
     history = PoseHistory()
     posed: list[tuple[int, Pose]] = []  # the last two poses: /track's prior (constant velocity)
@@ -355,6 +400,9 @@ def track_walk(frames: list[list[DetectedTarget]], truths: list[FrameTruth], dis
         history.add(k, estimate.pose)
         posed = [*posed[-1:], (k, estimate.pose)]
         pose, covariance = estimate.pose, estimate.covariance_position
+        if joint is not None:
+            covariance = covariance + joint.position_part(pose, camera, [o for o in obs
+                                                                         if o.id in estimate.target_ids])
         if to_world is not None:
             pose = to_world.apply_pose(pose)
             covariance = to_world.scale**2 * to_world.R @ covariance @ to_world.R.T

@@ -110,8 +110,8 @@ class BundleInfo:
             return None
         return np.sqrt(np.clip(np.diag(self.covariance)[:5], 0.0, None))
 
-    def disc_std(self, X: np.ndarray) -> np.ndarray:
-        """RMS 3D standard deviation of every disc relative to the map, from the
+    def disc_covariance(self, X: np.ndarray) -> np.ndarray | None:
+        """Joint covariance of the adjusted points relative to the map, from the
         marginal covariance.
 
         The covariance is that of a gauge: the held frame's pose is exact, so every
@@ -120,7 +120,42 @@ class BundleInfo:
         measurement: a motion of the whole map is no error in it (tracking, alignment
         and the benchmarks against the truth all see the map up to one rigid motion).
         So the rigid motions of the adjusted points are projected out of their
-        covariance first (the least-squares gauge over the discs).
+        covariance (the least-squares gauge over the discs): ``P C P^T``.
+
+        Parameters
+        ----------
+        X : (n_points, 3) ndarray
+            The reconstruction's points.
+
+        Returns
+        -------
+        (3 * len(points), 3 * len(points)) ndarray or None
+            Over the adjusted points (`points`, in that order), x, y, z of each (m^2 in
+            the reconstruction's units); None when no covariance was computed.
+        """
+        C = self.covariance
+        if C is None:
+            return None
+        points = np.asarray(X, np.float64)[self.points]
+        C = C[self.n_intr :, self.n_intr :]
+        if len(points) < 3:
+            return C.copy()
+        # G: each point's motion under a small translation (3) and rotation (3) of the
+        # whole map about its centroid; P = I - G G^+ projects those out.
+        d = points - points.mean(axis=0)
+        G = np.zeros((len(points), 3, 6))
+        G[:, :, :3] = np.eye(3)
+        G[:, 0, 4], G[:, 0, 5] = d[:, 2], -d[:, 1]
+        G[:, 1, 3], G[:, 1, 5] = -d[:, 2], d[:, 0]
+        G[:, 2, 3], G[:, 2, 4] = d[:, 1], -d[:, 0]
+        G = G.reshape(-1, 6)
+        PC = C - G @ (np.linalg.pinv(G) @ C)
+        projected = PC - (PC @ np.linalg.pinv(G).T) @ G.T
+        return (projected + projected.T) / 2.0
+
+    def disc_std(self, X: np.ndarray) -> np.ndarray:
+        """RMS 3D standard deviation of every disc relative to the map: the square root
+        of the trace of its 3x3 block of `disc_covariance`.
 
         Parameters
         ----------
@@ -134,29 +169,10 @@ class BundleInfo:
             when no covariance was computed.
         """
         std = np.full(len(X), np.nan)
-        C = self.covariance
+        C = self.disc_covariance(X)
         if C is None:
             return std
-        points = np.asarray(X, np.float64)[self.points]
-        C = C[self.n_intr :, self.n_intr :]
-        diag: np.ndarray
-        if len(points) >= 3:
-            # G: each point's motion under a small translation (3) and rotation (3) of
-            # the whole map about its centroid; P = I - G G^+ projects those out.
-            d = points - points.mean(axis=0)
-            G = np.zeros((len(points), 3, 6))
-            G[:, :, :3] = np.eye(3)
-            G[:, 0, 4], G[:, 0, 5] = d[:, 2], -d[:, 1]
-            G[:, 1, 3], G[:, 1, 5] = -d[:, 2], d[:, 0]
-            G[:, 2, 3], G[:, 2, 4] = d[:, 1], -d[:, 0]
-            G = G.reshape(-1, 6)
-            # The diagonal of P C P^T, P = I - G G^+, without forming it (m^2, not m^3).
-            B = np.linalg.pinv(G) @ C
-            diag = (np.diag(C) - 2.0 * np.einsum("ij,ji->i", G, B)
-                    + np.einsum("ij,jk,ik->i", G, B @ np.linalg.pinv(G).T, G))
-        else:
-            diag = np.diag(C)
-        diag = np.clip(diag, 0.0, None).reshape(-1, 3)
+        diag = np.clip(np.diag(C), 0.0, None).reshape(-1, 3)
         std[self.points] = np.sqrt(diag.sum(axis=1))
         return std
 

@@ -78,6 +78,10 @@ class SurveyResult:
     # Consecutive observations of a disc worth one independent one (`bundle.correlation_time`):
     # the covariance behind intrinsics_std and the discs' std_m is widened by it.
     correlation_time: float = 1.0
+    # Joint covariance of every target's discs relative to the map (m^2), rows x, y, z of
+    # each disc of each target in `targets` order; None without a covariance. The map
+    # document carries only its diagonal blocks' traces (`std_m`).
+    disc_covariance: np.ndarray | None = None
 
     @property
     def n_registered(self) -> int:
@@ -267,6 +271,8 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     rec, tracks, views = state.reconstruction, state.tracks, state.views
     registered = rec.registered()
     std = info.disc_std(rec.X) * scale.factor
+    joint = info.disc_covariance(rec.X)
+    row_of = {int(point): k for k, point in enumerate(info.points)}
     err = rec.errors(tracks, info.obs)
     rms = float(np.sqrt(np.nanmean(err**2)))
     results: list[SurveyedTarget] = []
@@ -278,6 +284,11 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         distance = float(np.median(np.linalg.norm(centres - X.mean(axis=0), axis=1)))
         results.append(SurveyedTarget(int(tracks.ids[t]), X.copy(), std[4 * t : 4 * t + 4].copy(),
                                       len(frames_t), angle, distance))
+    disc_covariance = None
+    if joint is not None and all(4 * t + k in row_of for t in surveyed.targets for k in range(4)):
+        rows = np.array([3 * row_of[4 * t + k] + axis for t in surveyed.targets for k in range(4) for axis in range(3)],
+                        np.int64).reshape(-1)
+        disc_covariance = joint[np.ix_(rows, rows)] * scale.factor**2
     camera_centres = np.array([rec.pose(f).position for f in np.flatnonzero(registered)]).reshape(-1, 3)
     advice = map_advice_of(results, tracks, views, surveyed, camera_centres, feature_groups(state))
     state.warnings += [w.message for w in advice]
@@ -296,5 +307,5 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
         intrinsics_fixed=state.settings.intrinsics_given, frames_used=used_frames,
         n_observations=len(info.obs), n_rejected_views=surveyed.n_rejected,
         scale_residual_m=scale.residual_m, timing_s=state.clock.timing_s, intrinsics_std=lens_std,
-        map_warnings=advice, correlation_time=info.correlation_time,
+        map_warnings=advice, correlation_time=info.correlation_time, disc_covariance=disc_covariance,
     )

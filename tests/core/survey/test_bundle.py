@@ -120,6 +120,18 @@ def test_covariance_gives_each_disc_an_uncertainty(true_state: SurveyState) -> N
     assert info.covariance is not None and info.covariance.shape == (3 * len(info.points),) * 2
     std = info.disc_std(rec.X)
     assert np.isfinite(std).all() and 1e-4 < np.median(std) < 0.02  # 0.1 px at 1-3 m: mm
+    # The joint covariance behind it: symmetric, no motion of the whole map in it, each
+    # disc's block the std's square.
+    joint = info.disc_covariance(rec.X)
+    assert joint is not None and joint.shape == info.covariance.shape
+    np.testing.assert_allclose(joint, joint.T)
+    assert np.linalg.eigvalsh(joint).min() > -1e-9 * np.abs(joint).max()
+    X = rec.X[info.points]
+    shift = np.tile(np.eye(3), (len(X), 1))  # the whole map moved along x, y, z
+    spin = np.cross(np.eye(3)[:, None, :], X - X.mean(axis=0)).transpose(1, 2, 0).reshape(-1, 3)  # turned
+    for motion in (shift, spin):
+        assert np.abs(motion.T @ joint @ motion).max() < 1e-9 * np.abs(motion.T @ info.covariance @ motion).max()
+    np.testing.assert_allclose(np.sqrt(np.diag(joint).reshape(-1, 3).sum(axis=1)), std[info.points])
     # Without the covariance: no uncertainty.
     _, plain = bundle_adjust(rec, true_state.tracks, use, False, PRIOR, max_iterations=0)
     assert plain.covariance is None and np.isnan(plain.disc_std(rec.X)).all()

@@ -38,6 +38,11 @@ def test_survey_result_of_the_true_state(true_state: SurveyState, room_walk: Roo
         np.testing.assert_allclose(target.discs, truth[target.id], atol=1e-12)
         assert target.n_views == len(true_state.views.of_target[list(true_state.tracks.ids).index(target.id)])
         assert np.isfinite(target.std_m).all()
+    # The discs' joint covariance, by target in the result's order: each disc's block
+    # gives its std_m.
+    assert result.disc_covariance is not None and result.disc_covariance.shape == (12 * len(result.targets),) * 2
+    blocks = np.diag(result.disc_covariance).reshape(-1, 3).sum(axis=1)
+    np.testing.assert_allclose(np.sqrt(blocks), np.concatenate([t.std_m for t in result.targets]))
     assert len(result.trajectory) == 2 * n
     assert all(p is None for p in result.trajectory[1::2])
     for f, pose in enumerate(result.trajectory[::2]):
