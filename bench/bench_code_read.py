@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.core.detection import code_reader, identification  # noqa: E402
 from app.core.detection._frame import Pyramid  # noqa: E402
-from app.core.detection.candidates import as_gray  # noqa: E402
+from app.core.detection import as_gray  # noqa: E402
 from app.core.detection.verification import _measure  # noqa: E402
 from app.core.geometry import homographies  # noqa: E402
 from app.core.markers import DEFAULT_FAMILY, get_family  # noqa: E402

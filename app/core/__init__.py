@@ -5,6 +5,8 @@ Sub-packages:
 * `app.core.geometry`: the camera model, poses and pose estimation, similarity
   alignment, card homographies and the tracking regions a pose predicts.
 * `app.core.detection`: the disc detector: candidate discs, targets, disc fit, `Detector`.
+* `app.core.features`: the scene's own points, tracked from frame to frame (the
+  survey's feature tracks).
 * `app.core.survey`: the automatic survey: a map and the camera's intrinsics from a video.
 
 Core modules:
@@ -18,4 +20,4 @@ Conventions (disc order, frames, units) are in docs/map-format.md. The sub-packa
 not imported here: import the one you need (``from app.core.geometry import Camera``).
 """
 
-__all__ = ["detection", "freed", "geometry", "imagecodec", "markers", "survey"]
+__all__ = ["detection", "features", "freed", "geometry", "imagecodec", "markers", "survey"]

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from app.core.detection import assemble_targets, group_candidates
+from app.core.detection import as_gray, assemble_targets, group_candidates
 from app.core.detection import candidates as cand
 from app.core.markers import DEFAULT_FAMILY, get_family
 from app.learning.classifier import condense, dihedral
@@ -53,7 +53,7 @@ def label_site_image(gray: np.ndarray, classifier: cand.DiscClassifier, family: 
                      max_negatives: int = 2000, rng: np.random.Generator | None = None) -> SiteWindows:
     """Positive and negative windows of one uint8 greyscale image, labelled by the
     detector itself (see the module docstring)."""
-    gray = cand.as_gray(gray)
+    gray = as_gray(gray)
     rows, s1, kept = cand.detect_windows(gray, classifier)
     targets = assemble_targets(gray, rows, family)
     empty = np.zeros((0, cand.WINDOW, cand.WINDOW), np.uint8)
@@ -158,7 +158,7 @@ def adapt_classifier(
     targets_after = []
     for index, image in enumerate(images):
         rows = cand.find_candidates(image, adapted)
-        targets_after.append(len(assemble_targets(cand.as_gray(image), rows, family)))
+        targets_after.append(len(assemble_targets(as_gray(image), rows, family)))
         if progress:
             progress("checking on the site images", 0.8 + 0.2 * (index + 1) / len(images))
     stats: dict[str, Any] = {

@@ -30,6 +30,7 @@ from app.core.detection import (
     _refinement_kernels,
     _verification_kernels,
 )
+from app.core.detection._frame import as_gray
 from app.core.detection.candidates import MIN_SIDE, DiscClassifier, find_candidates, load_default_classifier
 from app.core.detection.detector import Detection, Detector
 from app.core.detection.disc_fit import fit_disc_centres
@@ -44,6 +45,7 @@ __all__ = [
     "Detection",
     "Detector",
     "DiscClassifier",
+    "as_gray",
     "assemble_targets",
     "draw_detections",
     "find_candidates",

@@ -13,16 +13,29 @@ import numpy as np
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
-    """uint8 greyscale from greyscale, BGR or BGRA of any numeric type (rounded and
-    clipped to 0..255); ValueError for any other shape."""
+    """The image as every detection stage reads it.
+
+    Parameters
+    ----------
+    image : ndarray
+        uint8 greyscale (H, W) or (H, W, 1), BGR or BGRA.
+
+    Returns
+    -------
+    ndarray
+        Contiguous uint8 greyscale (H, W); ValueError for any other input (another
+        dtype, another shape).
+    """
     a = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] in (3, 4):
-        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    if a.ndim != 2:
-        raise ValueError(f"expected a greyscale image, got shape {a.shape}")
     if a.dtype != np.uint8:
-        a = np.clip(np.rint(a), 0, 255).astype(np.uint8)
-    return a
+        raise ValueError(f"expected a uint8 image, got {a.dtype}")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    elif a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    elif a.ndim != 2:
+        raise ValueError(f"expected a greyscale or BGR image, got shape {a.shape}")
+    return np.ascontiguousarray(a)
 
 
 class Pyramid:

@@ -72,6 +72,7 @@ import cv2
 import numpy as np
 
 from app.core.detection import _candidates_kernels as kernels
+from app.core.detection._frame import as_gray
 
 WINDOW: int = 12
 LEVELS: int = 4
@@ -338,32 +339,13 @@ def _thread_workspace() -> _Workspace:
 # --------------------------------------------------------------------------------------
 
 
-def as_gray(image: np.ndarray) -> np.ndarray:
-    """The image as the candidate stage reads it.
-
-    Parameters
-    ----------
-    image : ndarray
-        uint8 greyscale (H, W) or (H, W, 1), BGR or BGRA, at least `MIN_SIDE` pixels on
-        each side.
-
-    Returns
-    -------
-    ndarray
-        Contiguous uint8 greyscale (H, W); ValueError for any other input.
-    """
-    a = np.asarray(image)
-    if a.dtype != np.uint8:
-        raise ValueError(f"expected a uint8 image, got {a.dtype}")
-    if a.ndim == 3 and a.shape[2] == 1:
-        a = a[:, :, 0]
-    elif a.ndim == 3 and a.shape[2] in (3, 4):
-        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    elif a.ndim != 2:
-        raise ValueError(f"expected a greyscale or BGR image, got shape {a.shape}")
-    if min(a.shape) < MIN_SIDE:
-        raise ValueError(f"image must be at least {MIN_SIDE}x{MIN_SIDE} pixels, got {a.shape[1]}x{a.shape[0]}")
-    return np.ascontiguousarray(a)
+def _scannable(image: np.ndarray) -> np.ndarray:
+    """The image as the candidate stage scans it: `as_gray`, and at least `MIN_SIDE`
+    pixels on each side (ValueError otherwise)."""
+    gray = as_gray(image)
+    if min(gray.shape) < MIN_SIDE:
+        raise ValueError(f"image must be at least {MIN_SIDE}x{MIN_SIDE} pixels, got {gray.shape[1]}x{gray.shape[0]}")
+    return gray
 
 
 def pyramid(gray: np.ndarray, workspace: _Workspace | None = None) -> list[np.ndarray]:
@@ -922,7 +904,7 @@ def stage1_windows(image: np.ndarray, classifier: DiscClassifier, apply_screen: 
     Parameters
     ----------
     image : ndarray
-        uint8 greyscale or BGR (`as_gray`).
+        uint8 greyscale, BGR or BGRA (`as_gray`), at least `MIN_SIDE` pixels a side.
     classifier : DiscClassifier
         Its blob thresholds and screen.
     apply_screen : bool
@@ -938,7 +920,7 @@ def stage1_windows(image: np.ndarray, classifier: DiscClassifier, apply_screen: 
     Stage1Windows
         The windows, their levels, centres and scores.
     """
-    gray = as_gray(image)
+    gray = _scannable(image)
     thr = classifier.blob_thresholds if blob_thresholds is None else blob_thresholds
     ws = _thread_workspace() if workspace is None else workspace
     levels, scanned = _scan(gray, thr, ws)
@@ -1092,7 +1074,7 @@ def detect_windows(image: np.ndarray, classifier: DiscClassifier) -> tuple[np.nd
     Parameters
     ----------
     image : ndarray
-        uint8 greyscale or BGR (`as_gray`).
+        uint8 greyscale, BGR or BGRA (`as_gray`), at least `MIN_SIDE` pixels a side.
     classifier : DiscClassifier
         The classifier.
 

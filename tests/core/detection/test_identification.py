@@ -76,7 +76,8 @@ def _smeared_card(marker_id: int, px: int, length: float, angle: float) -> tuple
     img = np.full((px + 80, px + 80), 90, np.uint8)
     img[40 : 40 + px, 40 : 40 + px] = render_card(marker_layout(DEFAULT_FAMILY, marker_id), px)
     discs = np.asarray(marker_layout(DEFAULT_FAMILY, marker_id).discs, np.float64) * px - 0.5 + 40
-    return degrade.motion_blur(img, length, angle), discs
+    blurred = degrade.motion_blur(img, length, angle)  # float: a frame is uint8
+    return np.clip(np.rint(blurred), 0, 255).astype(np.uint8), discs
 
 
 def test_motion_blurred_codes_are_read_by_the_smear_templates(monkeypatch: pytest.MonkeyPatch) -> None:
