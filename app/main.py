@@ -27,7 +27,7 @@ from app.routers import classifiers as classifiers_router
 from app.routers import detect, environments, health, jobs, keys, markers, surveys, track
 from app.schemas import MAX_LISTED_ERRORS, complete_openapi, error_summary
 from app.services import classifiers
-from app.services.detection import DetectorCache
+from app.services.detection import DetectorCache, DetectorKernels
 from app.services.errors import ServiceError
 from app.services.image_workers import ImageWorkers
 from app.services.images import MemoryBudget, limit_compute_threads
@@ -36,7 +36,7 @@ from app.services.keys import VerifiedKeys
 from app.services.metrics import Metrics
 from app.services.rate_limits import ClientRates
 from app.services.streaming import TrackStreams
-from app.services.tracking import DetectorKernels, TrackingService
+from app.services.tracking import TrackingService
 from app.services.uploads import UploadsInFlight
 from app.settings import Settings
 

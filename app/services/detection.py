@@ -1,20 +1,30 @@
 """Detection for the API: run the environment's (or a chosen) classifier on a client
 image and shape the reply, as JSON or as the image with the detections drawn over it.
-Detectors are built once and shared."""
+Detectors are built once and shared.
+
+The detector's compiled kernels (`DetectorKernels`) load, or on a machine's first start
+compile, in a thread of their own while the server already answers.
+"""
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
+from collections.abc import Callable
 
 import cv2
+from numba.core import event as numba_event
 from sqlalchemy.orm import Session
 
-from app.core.detection import Detection, Detector, draw_detections
+from app.core.detection import Detection, Detector, draw_detections, warm_up
 from app.core.markers import FAMILIES
 from app.schemas import DetectedTargetOut, DetectResponse
 from app.services import classifiers, images
 from app.services.errors import MAX_ID, Invalid, NotFound
 from app.settings import Settings
+
+log = logging.getLogger(__name__)
 
 #: A detector's key: (classifier id, marker family).
 DetectorKey = tuple[int, str]
@@ -91,3 +101,80 @@ def detect_drawn(session: Session, cache: DetectorCache, settings: Settings, mem
         if not ok:
             raise RuntimeError("OpenCV could not encode the drawn image as PNG")
         return png.tobytes()
+
+
+class _OnCompile(numba_event.Listener):
+    """Calls `callback` when numba starts compiling: a kernel not found in its cache."""
+
+    def __init__(self, callback: Callable[[], None]) -> None:
+        self.callback = callback
+
+    def on_start(self, event: numba_event.Event) -> None:
+        self.callback()
+
+    def on_end(self, event: numba_event.Event) -> None:
+        pass
+
+
+class DetectorKernels:
+    """The detector's compiled (numba) kernels, loaded in a thread of their own: from
+    numba's cache in under a second, or compiled on a machine's first start (10-30 s)
+    while the server already answers; `not_ready` says why until they are done. A frame
+    that comes first does not fail: the kernels it calls compile on their first call,
+    numba's compiler lock making it wait for the compilation under way."""
+
+    COMPILING = "compiling the detector's kernels"
+    LOADING = "loading the detector's kernels"
+
+    def __init__(self, compile_all: Callable[[], None] = warm_up) -> None:
+        self._compile_all = compile_all
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._compiling = threading.Event()
+        self._settled = threading.Event()  # done, or found to need compiling
+        self._error: str | None = None
+        self.seconds: float | None = None
+
+    def start(self) -> None:
+        # A daemon: a server stopped during a first compilation exits without waiting for it.
+        threading.Thread(target=self._run, name="detector-kernels", daemon=True).start()
+
+    def _run(self) -> None:
+        started = time.perf_counter()
+        try:
+            with numba_event.install_listener("numba:compile", _OnCompile(self._compiling_started)):
+                self._compile_all()
+        except Exception as exc:
+            self._error = f"the detector's kernels failed to compile: {type(exc).__name__}: {exc}"
+            log.exception("the detector's kernels failed to compile")
+        else:
+            self.seconds = time.perf_counter() - started
+            log.info(f"kernels ready ({self.seconds:.1f} s)", extra={"fields": {"seconds": round(self.seconds, 2)}})
+        finally:
+            self._done.set()
+            self._settled.set()
+
+    def _compiling_started(self) -> None:
+        with self._lock:
+            if self._compiling.is_set():
+                return
+            self._compiling.set()
+        log.info(f"{self.COMPILING}: 10-30 s on a machine's first start, then loaded from numba's cache")
+        self._settled.set()
+
+    def wait_unless_compiling(self, timeout: float) -> bool:
+        """Wait for kernels loaded from numba's cache, but not for a compilation: until they
+        are done, or found to need compiling, or `timeout` seconds; True once done."""
+        self._settled.wait(timeout)
+        return self._done.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait up to `timeout` seconds (None: until done); True once they are done."""
+        return self._done.wait(timeout)
+
+    @property
+    def not_ready(self) -> str | None:
+        """Why the detector cannot run at full speed yet, or None once it can."""
+        if self._done.is_set():
+            return self._error
+        return self.COMPILING if self._compiling.is_set() else self.LOADING

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import datetime
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -75,6 +76,19 @@ def get_row(session: Session, environment_id: int) -> Environment:
 def stored_map(session: Session, environment_id: int) -> SurveyMap | None:
     """The environment's stored map row, if it has one."""
     return session.scalar(select(SurveyMap).where(SurveyMap.environment_id == environment_id))
+
+
+def map_version(session: Session, environment_id: int) -> str | None:
+    """The version of the environment's stored map (a new one on every change, whichever
+    process made it), read without the document; None without a map."""
+    current = session.execute(select(SurveyMap.id, SurveyMap.updated_at)
+                              .where(SurveyMap.environment_id == environment_id)).one_or_none()
+    return None if current is None else version_of(current.id, current.updated_at)
+
+
+def version_of(map_id: int, updated_at: datetime) -> str:
+    """A stored map's version from its id and its last change."""
+    return f"{map_id}:{updated_at.isoformat()}"
 
 
 def _has_map(session: Session, environment_id: int) -> bool:

@@ -4,7 +4,7 @@ that takes images decodes them here), within a memory budget shared by every rou
 from __future__ import annotations
 
 import multiprocessing
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -130,18 +130,11 @@ def decoded(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bo
         yield frame.gray
 
 
-@contextmanager
-def decoded_frame(data: bytes, settings: Settings, memory: MemoryBudget, *, detect: bool = True,
-                  reduction: Callable[[int, int], int] | None = None) -> Iterator[Frame]:
-    """`decoded`, with the image's size, and a JPEG decoded smaller when the caller says so.
+def frame_header(data: bytes, settings: Settings) -> ImageHeader:
+    """The client image's header (format and size), read before any pixel is decoded,
+    within ``max_image_bytes`` and ``max_image_pixels``.
 
-    `reduction` is called with the image's width and height from its header, before any
-    pixel is decoded, and returns the factor to decode a JPEG smaller by (1, 2, 4 or 8,
-    the decoder's DCT scaling: less time and memory than decoding the whole and
-    resampling); a PNG is decoded whole whatever it returns, and so is a JPEG that the
-    factor would make smaller than the detector's window.
-
-    Raises TooLarge (413), UnsupportedMedia (415), Invalid (422) or Busy (503)."""
+    Raises TooLarge (413), UnsupportedMedia (415) or Invalid (422)."""
     if len(data) > settings.max_image_bytes:
         raise TooLarge(f"image of {len(data)} bytes exceeds the limit of {settings.max_image_bytes} bytes")
     try:
@@ -149,13 +142,28 @@ def decoded_frame(data: bytes, settings: Settings, memory: MemoryBudget, *, dete
         check_size(header, settings.max_image_pixels)
     except ImageError as exc:
         raise _refusal(exc) from None
-    factor = 1
-    if reduction is not None and header.format == "jpeg":
-        factor = int(reduction(header.width, header.height))
-        if factor not in JPEG_REDUCTIONS:
-            raise ValueError(f"a JPEG is decoded at 1/{JPEG_REDUCTIONS} of its size, not 1/{factor}")
-        if min(-(-header.width // factor), -(-header.height // factor)) < MIN_SIDE:
-            factor = 1  # too small for the detector reduced: whole (or refused below, as ever)
+    return header
+
+
+@contextmanager
+def decoded_frame(data: bytes, settings: Settings, memory: MemoryBudget, *, header: ImageHeader | None = None,
+                  detect: bool = True, reduction: int = 1) -> Iterator[Frame]:
+    """`decoded`, with the image's size, and a JPEG decoded smaller when the caller says so.
+
+    `header` is the image's (`frame_header`), when the caller read it to decide the
+    `reduction`: the factor to decode a JPEG smaller by (1, 2, 4 or 8, the decoder's DCT
+    scaling: less time and memory than decoding the whole and resampling). A PNG is
+    decoded whole whatever it says, and so is a JPEG that the factor would make smaller
+    than the detector's window.
+
+    Raises TooLarge (413), UnsupportedMedia (415), Invalid (422) or Busy (503)."""
+    if header is None:
+        header = frame_header(data, settings)
+    if reduction not in JPEG_REDUCTIONS:
+        raise ValueError(f"a JPEG is decoded at 1/{JPEG_REDUCTIONS} of its size, not 1/{reduction}")
+    factor = reduction if header.format == "jpeg" else 1
+    if min(-(-header.width // factor), -(-header.height // factor)) < MIN_SIDE:
+        factor = 1  # too small for the detector reduced: whole (or refused below, as ever)
     with memory.hold(cost_bytes(header, detect, factor), f"a {header.width}x{header.height} {header.format.upper()}"):
         try:
             gray = decode_gray(data, settings.max_image_pixels, header=header, reduction=factor)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.core.geometry import Convention, OneEuroParams, Pose, PoseFilter, to_convention
+from app.core.geometry import Convention, OneEuroParams, Pose, PoseEstimate, PoseFilter, to_convention
 from app.schemas import FilteredPoseOut, ClientPose, PoseFrame, PoseOut, Smoothing, TrackConfig
 
 assert set(PoseFrame.__args__) == {c.value for c in Convention}  # type: ignore[attr-defined]
@@ -55,17 +55,17 @@ class PoseOutput:
                 self._filter = PoseFilter(params, smooth=smoothing is not None)
         return self._filter
 
-    def shape(self, pose: PoseOut | None, arrived_s: float, config: TrackConfig) -> ShapedPose:
+    def shape(self, estimate: PoseEstimate | None, arrived_s: float, config: TrackConfig) -> ShapedPose:
         """The frame's poses, its pose having been measured on a frame that arrived at
         `arrived_s` (monotonic seconds)."""
         filter_ = self._filter_for(config)
-        if pose is None:
+        if estimate is None:
             return ShapedPose(None, None, None, None)
-        R, t = np.asarray(pose.R), np.asarray(pose.t)
-        pose = pose.model_copy(update={"frame_pose": frame_pose(R, t, config.frame)})
+        R, t = estimate.pose.R, estimate.pose.t
+        pose = PoseOut(**estimate.to_dict(), frame_pose=frame_pose(R, t, config.frame))
         if filter_ is None:
             return ShapedPose(pose, None, R, t)
-        out: Pose = filter_.update(arrived_s, Pose(R, t))
+        out: Pose = filter_.update(arrived_s, estimate.pose)
         if config.predict_ms > 0:
             out = filter_.predict(config.predict_ms / 1e3)
         filtered = FilteredPoseOut(R=out.R.tolist(), t=out.t.tolist(), position=out.position.tolist(),

@@ -42,6 +42,7 @@ from pydantic import ValidationError
 from sqlalchemy.exc import IntegrityError
 
 from app import logs
+from app.core.tracking import TrackState
 from app.schemas import (
     MAX_JSON_KEYS,
     FreeDOutput,
@@ -64,7 +65,7 @@ from app.services.freed import FreeDSender, FreeDUnusable
 from app.services.pose_output import PoseOutput
 from app.services.rate_limits import Limit, TokenBucket
 from app.services.track_connections import ClientAtLimit, TrackConnections
-from app.services.tracking import StreamFrame, TrackingContext, TrackingService, TrackState
+from app.services.tracking import StreamFrame, TrackingContext, TrackingService
 from app.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -379,7 +380,7 @@ class TrackStreams:
                 stream.dropped += dropped
                 await _error(channel, "internal_error", f"frame {seq} could not be processed (server error)", seq)
                 continue
-            shaped = stream.output.shape(result.pose, arrived, stream.config)
+            shaped = stream.output.shape(result.tracked.estimate, arrived, stream.config)
             timing_ms = result.timing_ms
             if stream.sender is not None and shaped.R is not None:
                 # FreeD before the reply: a studio's renderer waits for it, the client less so.
@@ -395,7 +396,7 @@ class TrackStreams:
             await channel.send(TrackFrame(
                 seq=seq, width=result.width, height=result.height, targets=result.targets, pose=shaped.pose,
                 pose_error=result.pose_error, timing_ms=timing_ms, dropped=dropped, scan=result.scan,
-                scan_reason=result.scan_reason,  # type: ignore[arg-type]
+                scan_reason=result.tracked.reason.value,  # type: ignore[arg-type]
                 filtered=shaped.filtered,
             ))
 
@@ -437,7 +438,7 @@ async def _parse_config(channel: TrackChannel, text: str) -> TrackConfig | None:
 
 def _hello(context: TrackingContext, reason: TrackHelloReason) -> TrackHello:
     return TrackHello(environment_id=context.environment_id, camera=context.camera_model,
-                      targets=len(context.discs), map_frame=context.map_frame, reason=reason)
+                      targets=len(context.map.discs), map_frame=context.map_frame, reason=reason)
 
 
 def _reason(current: TrackingContext, new: TrackingContext) -> TrackHelloReason | None:

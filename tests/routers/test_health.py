@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 from numba.core import event as numba_event
 
-from app.services.tracking import DetectorKernels
+from app.services.detection import DetectorKernels
 from app.settings import Settings
 
 

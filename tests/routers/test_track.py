@@ -285,44 +285,6 @@ def test_region_config_is_validated(client: TestClient, pan_environment: int) ->
         assert echo["regions"] is False and echo["full_scan_every"] == 5
 
 
-def test_track_state_reasons_without_a_server() -> None:
-    from types import SimpleNamespace
-
-    from app.core.geometry.regions import MapTargets
-    from app.schemas import TrackConfig
-    from app.services.tracking import TrackState
-
-    camera = Camera.pinhole(820.0, 640, 480)
-    uv = np.array([[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]]) - 0.5
-    card = np.c_[0.2 * uv, np.full(4, 2.0)]  # 2 m ahead of the identity pose, facing it
-    targets = MapTargets.from_discs({5: card})
-    config = TrackConfig()
-    state = TrackState()
-
-    def seen(pose: Pose, focal: float = 820.0) -> SimpleNamespace:
-        return SimpleNamespace(pose=pose, focal_px=focal, tilt_from_track=False)
-
-    assert state.plan(0, camera, config, targets) == (None, "first")
-    state.update(0, camera, seen(Pose.identity()), full=True)
-    regions, why = state.plan(1, camera, config, targets)
-    assert why == "regions" and [r.ids for r in regions] == [(5,)]
-    state.update(1, camera, seen(Pose.identity()), full=False)
-    assert state.plan(1 + 9, camera, config, targets) == (None, "stale")  # 9 frames on: too far ahead
-    assert state.plan(2, camera.scaled_to(320, 240), config, targets) == (None, "camera")
-    assert state.plan(2, camera, TrackConfig(regions=False), targets) == (None, "off")
-    assert state.plan(2, camera, TrackConfig(full_scan_every=2), targets) == (None, "periodic")
-    # A zoom lens: the next prediction uses the focal length just measured.
-    fixed = TrackState()
-    for k in range(3):
-        fixed.update(k, camera, seen(Pose.identity()), full=k == 0)
-    state.update(2, camera, seen(Pose.identity(), focal=1640.0), full=False)
-    zoomed, _ = state.plan(3, camera, config, targets)
-    normal, _ = fixed.plan(3, camera, config, targets)
-    assert zoomed[0].width > 1.5 * normal[0].width
-    state.update(3, camera, None, full=False)
-    assert state.plan(4, camera, config, targets) == (None, "lost")
-
-
 @pytest.fixture(scope="module")
 def rolling_pan() -> tuple[scenes.Scene, Camera, list[Pose], list[bytes]]:
     """A phone turning 3 degrees a frame (90 degrees a second) in a room of cards, its

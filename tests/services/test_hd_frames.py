@@ -84,23 +84,18 @@ def test_counting_scans_agrees_with_the_bytes() -> None:
 def test_decoded_frame_reduces_what_the_caller_asks_within_the_budget(settings: Settings) -> None:
     memory = images.MemoryBudget(10**9)
     data = _blob_jpeg(640, 360, (320.0, 180.0))
-    asked: list[tuple[int, int]] = []
-
-    def half(width: int, height: int) -> int:
-        asked.append((width, height))
-        return 2
-
-    with images.decoded_frame(data, settings, memory, reduction=half) as frame:
-        assert asked == [(640, 360)] and frame.reduction == 2
+    header = images.frame_header(data, settings)  # the size, before any pixel is decoded
+    assert (header.width, header.height) == (640, 360)
+    with images.decoded_frame(data, settings, memory, header=header, reduction=2) as frame:
+        assert frame.reduction == 2
         assert (frame.width, frame.height) == (640, 360) and frame.gray.shape == (180, 320)
-        header = read_header(data)
         assert memory.held == images.cost_bytes(header, True, 2) < images.cost_bytes(header, True)
     assert memory.held == 0
     # Reduced below the detector's window: decoded whole.
     tiny = _blob_jpeg(80, 60, (40.0, 30.0), sigma=5.0)
-    with images.decoded_frame(tiny, settings, memory, reduction=lambda w, h: 4) as frame:
+    with images.decoded_frame(tiny, settings, memory, reduction=4) as frame:
         assert frame.reduction == 1 and frame.gray.shape == (60, 80)
-    with pytest.raises(ValueError), images.decoded_frame(data, settings, memory, reduction=lambda w, h: 3):
+    with pytest.raises(ValueError), images.decoded_frame(data, settings, memory, reduction=3):
         pass
     with images.decoded(data, settings, memory) as gray:  # the plain path: whole
         assert gray.shape == (360, 640)

@@ -1,4 +1,5 @@
-"""The pose a /track connection expects next, which decides a lone card's tilt."""
+"""A stream's memory without a server: where it searches the next frame and why, and
+the pose it expects there, which decides a lone card's tilt."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from app.core.geometry import Camera, Pose
-from app.services.tracking import TILT_OVERRULED_LIMIT, TrackState
+from app.core.geometry import Camera, MapTargets, Pose
+from app.core.tracking import TILT_OVERRULED_LIMIT, ScanReason, TrackState
 
 CAMERA = Camera.pinhole(820.0, 640, 480)
 
@@ -50,3 +51,34 @@ def test_a_track_that_keeps_overruling_the_residual_lets_it_decide() -> None:
     assert state.prior(TILT_OVERRULED_LIMIT) is None
     _seen(state, TILT_OVERRULED_LIMIT, _pose(0.0), overruled=False)
     assert state.prior(TILT_OVERRULED_LIMIT + 1) is not None
+
+
+def test_the_plan_says_where_to_search_and_why() -> None:
+    camera = Camera.pinhole(820.0, 640, 480)
+    uv = np.array([[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]]) - 0.5
+    card = np.c_[0.2 * uv, np.full(4, 2.0)]  # 2 m ahead of the identity pose, facing it
+    targets = MapTargets.from_discs({5: card})
+    state = TrackState()
+
+    def seen(pose: Pose, focal: float = 820.0) -> SimpleNamespace:
+        return SimpleNamespace(pose=pose, focal_px=focal, tilt_from_track=False)
+
+    assert state.plan(0, camera, targets) == (None, ScanReason.FIRST)
+    state.update(0, camera, seen(Pose.identity()), full=True)
+    regions, why = state.plan(1, camera, targets)
+    assert why == ScanReason.REGIONS and [r.ids for r in regions] == [(5,)]
+    state.update(1, camera, seen(Pose.identity()), full=False)
+    assert state.plan(1 + 9, camera, targets) == (None, ScanReason.STALE)  # 9 frames on: too far ahead
+    assert state.plan(2, camera.scaled_to(320, 240), targets) == (None, ScanReason.CAMERA)
+    assert state.plan(2, camera, targets, regions=False) == (None, ScanReason.OFF)
+    assert state.plan(2, camera, targets, full_scan_every=2) == (None, ScanReason.PERIODIC)
+    # A zoom lens: the next prediction uses the focal length just measured.
+    fixed = TrackState()
+    for k in range(3):
+        fixed.update(k, camera, seen(Pose.identity()), full=k == 0)
+    state.update(2, camera, seen(Pose.identity(), focal=1640.0), full=False)
+    zoomed, _ = state.plan(3, camera, targets)
+    normal, _ = fixed.plan(3, camera, targets)
+    assert zoomed[0].width > 1.5 * normal[0].width
+    state.update(3, camera, None, full=False)
+    assert state.plan(4, camera, targets) == (None, ScanReason.LOST)
