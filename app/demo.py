@@ -14,9 +14,6 @@ Needs the simulator: ``pip install -e '.[sim]'``.
 
 from __future__ import annotations
 
-import os
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,6 +26,7 @@ from tqdm import tqdm
 
 from app.client import ApiError, Client, JobFailed
 from app.core.geometry import Pose
+from app.local_server import ServerNotReady, free_port, running_server
 from app.schemas import AlignmentRequest, JobOut, SurveyResult
 
 __all__ = ["DEMO_FRAMES", "run_demo"]
@@ -37,12 +35,12 @@ __all__ = ["DEMO_FRAMES", "run_demo"]
 DEMO_FRAMES = {False: (120, 150), True: (60, 60)}
 #: The demo's random seed: the same room, walks and frames every time.
 SEED = 5
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+#: The settings of the service the demo starts, over the caller's environment: no API
+#: keys (the demo is its only client), and warnings only in its log.
+DEMO_SERVER_SETTINGS = {"FIDOTRACK_API_KEYS": "false", "FIDOTRACK_LOG_LEVEL": "WARNING"}
+#: Seconds the demo waits for the service it starts: a machine's first start compiles the
+#: detector's kernels.
+DEMO_READY_TIMEOUT_S = 300.0
 
 
 @contextmanager
@@ -55,32 +53,17 @@ def _service(url: str | None, api_key: str | None, data_dir: Path, quiet: bool) 
             print(f"service: {url}")
             yield client
         return
-    port = _free_port()
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port),
-           "FIDOTRACK_API_KEYS": "false", "FIDOTRACK_LOG_LEVEL": "WARNING"}
-    log = (data_dir.parent / "server.log").open("wb")
-    process = subprocess.Popen([sys.executable, "-m", "app.cli", "serve"], env=env, stdout=log,
-                               stderr=subprocess.STDOUT)
+    port = free_port()
+    print(f"service: starting on http://127.0.0.1:{port} (the first start on a machine compiles the detector's "
+          "kernels: 10-30 s)")
+    began = time.monotonic()
     try:
-        with Client(f"http://127.0.0.1:{port}") as client:
-            print(f"service: started on {client.base_url} (the first start on a machine compiles the "
-                  "detector's kernels: 10-30 s)")
-            began = time.monotonic()
-            while not client.ready():
-                if process.poll() is not None:
-                    raise ApiError(0, f"the service did not start:\n{(data_dir.parent / 'server.log').read_text()}")
-                if time.monotonic() - began > 300:
-                    raise ApiError(0, "the service was not ready within 300 s")
-                time.sleep(0.2)
+        with running_server(data_dir, port=port, settings=DEMO_SERVER_SETTINGS, log=data_dir.parent / "server.log",
+                            timeout=DEMO_READY_TIMEOUT_S) as server, Client(server.url) as client:
             print(f"service: ready after {time.monotonic() - began:.1f} s")
             yield client
-    finally:
-        process.terminate()
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-        log.close()
+    except ServerNotReady as error:
+        raise ApiError(0, f"the service did not start: {error}") from None
 
 
 def run_demo(url: str | None = None, api_key: str | None = None, small: bool = False, quiet: bool = False,

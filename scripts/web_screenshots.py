@@ -21,13 +21,12 @@ import httpx
 import numpy as np
 from playwright.sync_api import sync_playwright
 
+from app.local_server import running_server
 from app.sim import SMALL_ROOM, render_walk
 from app.sim.camera_feed import write_y4m
 from app.sim.scenes import scenario_frame
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from tests.conftest import running_server  # noqa: E402  (the tests' real-server helper)
 
 
 def main() -> int:
@@ -53,7 +52,7 @@ def main() -> int:
         picture, _ = scenario_frame("default", np.random.default_rng(2))
         cv2.imwrite(str(tmp / "cards.png"), picture)
 
-        with running_server(tmp / "data", tmp / "server.log") as server, sync_playwright() as playwright:
+        with running_server(tmp / "data", log=tmp / "server.log") as server, sync_playwright() as playwright:
             browser = playwright.chromium.launch(executable_path=chromium, args=[
                 "--no-sandbox", "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
                 f"--use-file-for-fake-video-capture={tmp / 'walk.y4m'}"])

@@ -33,6 +33,7 @@ LAYERS: dict[str, int] = {
     "app.schemas": 3,
     "app.services": 4,
     "app.client": 4,  # a client of the API: its message models, never the services
+    "app.local_server": 4,  # starts `fidotrack serve` as a process of its own, never imports it
     "app.deps": 5,
     "app.middleware": 5,
     "app.routers": 6,

@@ -211,22 +211,19 @@ def test_the_server_answers_while_the_kernels_compile(tmp_path: Path, monkeypatc
     # A machine's first start compiles the detector's kernels (numba, 10-30 s): the server
     # answers meanwhile, /livez at once and /readyz 503 with the reason, and a frame sent
     # before they are ready waits for them instead of failing.
-    import os
-    import subprocess
-
     import cv2
     import numpy as np
     from websockets.sync.client import connect
 
-    from tests.conftest import FIDOTRACK_SERVE, example_map
+    from app.local_server import launch_server
+    from tests.conftest import example_map
 
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba-cache"))  # cold: nothing compiled yet
     port, log = free_port(), tmp_path / "server.log"
     url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(tmp_path / "data"), "FIDOTRACK_PORT": str(port)}
     started = time.monotonic()
-    with log.open("ab") as out:
-        process = subprocess.Popen(FIDOTRACK_SERVE, env=env, stdout=out, stderr=subprocess.STDOUT)
+    server = launch_server(tmp_path / "data", port=port, log=log)  # not waiting: /readyz is what is watched
+    process = server.process
     try:
         while True:
             try:
@@ -259,5 +256,4 @@ def test_the_server_answers_while_the_kernels_compile(tmp_path: Path, monkeypatc
         assert ready.json()["status"] == "ready" and ready.json()["reason"] is None
         assert re.search(r"kernels ready \(\d+\.\d s\)", log.read_text()), log.read_text()
     finally:
-        process.terminate()
-        process.wait(30)
+        server.stop()
