@@ -75,12 +75,13 @@ import websockets
 from tqdm import tqdm
 
 from app.core.geometry import Camera, Pose
+from app.local_server import start_server
 from app.sim import BENCH_ROOM, render_walk
 from app.sim.camera_feed import read_frame_index, stamp_frame_index, write_y4m
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.bench_track import SPLIT, _free_port, _http, _start_server
+from bench.track_clients import QUIET_SERVER, SPLIT, http_json  # noqa: E402
 
 #: Replies left out at the start of each run (the page's first frames, the connection's
 #: first full scans).
@@ -476,15 +477,14 @@ def main() -> None:
 
         load = [os.getloadavg()]
         waits: list[float] = []
-        port = _free_port()
-        server = _start_server(Path(tmp), port, server_env)
+        server = start_server(Path(tmp), settings={**QUIET_SERVER, **server_env})
         try:
-            base = f"http://127.0.0.1:{port}"
-            meter = CpuMeter(server.pid)
+            base = server.url
+            meter = CpuMeter(server.process.pid)
             for size, (camera, room, y4m, frames) in walks.items():
-                env = _http("POST", f"{base}/environments", {"name": f"bench room {size}", "marker_size_m": 0.2})
-                _http("PUT", f"{base}/environments/{env['id']}/map", room.scene.map_document(camera))
-                url = f"ws://127.0.0.1:{port}/track?environment_id={env['id']}"
+                env = http_json("POST", f"{base}/environments", {"name": f"bench room {size}", "marker_size_m": 0.2})
+                http_json("PUT", f"{base}/environments/{env['id']}/map", room.scene.map_document(camera))
+                url = f"{server.ws_url}/track?environment_id={env['id']}"
                 asyncio.run(_warm_up(url, frames))
                 waits.append(settle(args.settle))
                 print(f"{size}: browser run ({args.seconds:.0f} s)...", file=sys.stderr, flush=True)
@@ -495,14 +495,13 @@ def main() -> None:
                 runs.append(asyncio.run(_python_run(url, frames, room.poses, size, args.seconds, meter)))
                 load.append(os.getloadavg())
         except Exception:
-            if server.poll() is not None:  # say why, when the server is gone
-                log = (Path(tmp) / "server.log").read_text(errors="replace")[-3000:]
-                print(f"bench_browser: the server exited with code {server.returncode}; its log ends:\n{log}",
+            if server.process.poll() is not None:  # say why, when the server is gone
+                log = server.log.read_text(errors="replace")[-3000:]
+                print(f"bench_browser: the server exited with code {server.process.returncode}; its log ends:\n{log}",
                       file=sys.stderr)
             raise
         finally:
-            server.terminate()
-            server.wait(timeout=30)
+            server.stop()
 
     print(f"\nLive tracking, browser page vs Python client: bench room 8x6x3 m, 30 cards, tracking walk of "
           f"{args.frames} frames (the browser's camera plays it in a loop at 30 fps), JPEG quality "

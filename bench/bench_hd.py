@@ -47,6 +47,7 @@ import pickle
 import sys
 import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import cv2
@@ -57,9 +58,18 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.geometry import Pose  # noqa: E402
+from app.local_server import running_server  # noqa: E402
 from app.sim import BENCH_ROOM, render_walk  # noqa: E402
 from bench.bench_browser import camera_for  # noqa: E402
-from bench.bench_track import MODES, SPLIT, RunStats, _account, _free_port, _http, _open, _start_server  # noqa: E402
+from bench.track_clients import (  # noqa: E402
+    MODES,
+    QUIET_SERVER,
+    SPLIT,
+    RunStats,
+    account,
+    http_json,
+    open_track,
+)
 
 #: The server's environment unless --server-env says otherwise.
 SERVER_ENV = {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1"}
@@ -106,7 +116,7 @@ async def _lock_step_all(urls: dict[tuple[str, str], str], frames: dict[str, lis
     keys = [(server, size, mode) for server, size in urls for mode in MODES]
     stats = {key: RunStats(f"{key[0]} {key[1]}", key[2]) for key in keys}
     reductions: dict[Key, list[float]] = {key: [] for key in keys}
-    sockets = {key: await _open(urls[key[:2]], key[2]) for key in keys}
+    sockets = {key: await open_track(urls[key[:2]], key[2]) for key in keys}
     try:
         for warm in range(start):  # the first frames' full scans, left out
             for key in keys:
@@ -124,7 +134,7 @@ async def _lock_step_all(urls: dict[tuple[str, str], str], frames: dict[str, lis
                     raise RuntimeError(f"unexpected reply {reply}")
                 stats[key].latency_ms.append(took * 1e3)
                 stats[key].seconds += took
-                _account(stats[key], reply, truth)
+                account(stats[key], reply, truth)
                 reductions[key].append(float(reply["timing_ms"].get("reduction", 1.0)))
     finally:
         for ws in sockets.values():
@@ -181,26 +191,18 @@ def main() -> None:
     if args.baseline_env:
         servers["baseline"] = {**server_env, **dict(item.split("=", 1) for item in args.baseline_env)}
     load = [os.getloadavg()[0]]
-    with tempfile.TemporaryDirectory() as tmp:
-        running = []
-        try:
-            urls = {}
-            for label, env_vars in servers.items():
-                port = _free_port()
-                data_dir = Path(tmp) / label.replace(" ", "-")
-                data_dir.mkdir()
-                running.append(_start_server(data_dir, port, env_vars))
-                base = f"http://127.0.0.1:{port}"
-                for name in names:
-                    env = _http("POST", f"{base}/environments", {"name": f"bench room {name}", "marker_size_m": 0.2})
-                    _http("PUT", f"{base}/environments/{env['id']}/map", documents[name])
-                    urls[(label, name)] = f"ws://127.0.0.1:{port}/track?environment_id={env['id']}"
-            stats, reductions = asyncio.run(_lock_step_all(urls, frames, truth, WARM_UP, args.frames))
-            load.append(os.getloadavg()[0])
-        finally:
-            for server in running:
-                server.terminate()
-                server.wait(timeout=30)
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as running:
+        urls = {}
+        for label, env_vars in servers.items():
+            server = running.enter_context(running_server(Path(tmp) / label.replace(" ", "-"),
+                                                          settings={**QUIET_SERVER, **env_vars}))
+            for name in names:
+                env = http_json("POST", f"{server.url}/environments", {"name": f"bench room {name}",
+                                                                       "marker_size_m": 0.2})
+                http_json("PUT", f"{server.url}/environments/{env['id']}/map", documents[name])
+                urls[(label, name)] = f"{server.ws_url}/track?environment_id={env['id']}"
+        stats, reductions = asyncio.run(_lock_step_all(urls, frames, truth, WARM_UP, args.frames))
+        load.append(os.getloadavg()[0])
     floor = _decode_floor(frames)
 
     ref = names[0]

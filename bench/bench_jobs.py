@@ -38,10 +38,10 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.local_server import fidotrack_command, free_port, running_server  # noqa: E402
 from app.sim import BENCH_CAMERA, BENCH_ROOM  # noqa: E402
-from bench.bench_track import _free_port  # noqa: E402
 
-FIDOTRACK = str(Path(sys.executable).parent / "fidotrack")
+FIDOTRACK = fidotrack_command()
 
 
 def render_video(path: Path, n_frames: int) -> None:
@@ -75,6 +75,7 @@ class Run:
 
 @contextmanager
 def _processes(commands: list[list[str]], env: dict[str, str], log: Path) -> Iterator[None]:
+    """The job engine's processes (`commands`), stopped when the block ends; their output appended to `log`."""
     out = log.open("ab")
     started = [subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT) for command in commands]
     try:
@@ -90,18 +91,6 @@ def _processes(commands: list[list[str]], env: dict[str, str], log: Path) -> Ite
         out.close()
 
 
-def _wait_ready(url: str) -> None:
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError("the server did not become ready")
-
-
 def survey_once(name: str, video: Path, n_workers: int | None, frames: int, feature_tracks: bool = False,
                 code: Path | None = None) -> Run:
     """One survey of `video` on a fresh service: with `n_workers`, on a scheduler of its
@@ -109,23 +98,20 @@ def survey_once(name: str, video: Path, n_workers: int | None, frames: int, feat
     checkout of fidotrack instead of this one."""
     with tempfile.TemporaryDirectory(prefix="fidotrack-bench-jobs-") as folder:
         data = Path(folder)
-        port = _free_port()
-        env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data), "FIDOTRACK_PORT": str(port),
-               "FIDOTRACK_LOG_LEVEL": "WARNING"}
-        env.pop("FIDOTRACK_DATABASE_URL", None)
+        # Each run its own SQLite file in its data directory (an empty FIDOTRACK_DATABASE_URL).
+        settings = {"FIDOTRACK_LOG_LEVEL": "WARNING", "FIDOTRACK_DATABASE_URL": ""}
         if code is not None:
-            env["PYTHONPATH"] = str(code.resolve())
-        commands = []
+            settings["PYTHONPATH"] = str(code.resolve())
+        engine = []
         if n_workers is not None:
-            scheduler_port = str(_free_port())
-            env["FIDOTRACK_JOB_SCHEDULER"] = f"tcp://127.0.0.1:{scheduler_port}"
-            commands += [[FIDOTRACK, "scheduler", "--host", "127.0.0.1", "--port", scheduler_port],
-                         [FIDOTRACK, "worker", "--nworkers", str(n_workers)]]
-        commands.append([FIDOTRACK, "serve"])
-        with _processes(commands, env, data / "service.log"):
-            url = f"http://127.0.0.1:{port}"
-            _wait_ready(url)
-            with httpx.Client(base_url=url, timeout=120) as http:
+            scheduler_port = str(free_port())
+            settings["FIDOTRACK_JOB_SCHEDULER"] = f"tcp://127.0.0.1:{scheduler_port}"
+            engine += [[*FIDOTRACK, "scheduler", "--host", "127.0.0.1", "--port", scheduler_port],
+                       [*FIDOTRACK, "worker", "--nworkers", str(n_workers)]]
+        env = {**os.environ, **settings, "FIDOTRACK_DATA_DIR": str(data)}
+        log = data / "service.log"
+        with _processes(engine, env, log), running_server(data, settings=settings, log=log) as server:
+            with httpx.Client(base_url=server.url, timeout=120) as http:
                 env_id = http.post("/environments", json={"name": "bench", "marker_size_m": BENCH_ROOM.marker_size_m}
                                    ).json()["id"]
                 with video.open("rb") as upload:

@@ -106,7 +106,6 @@ import sys
 import tempfile
 import threading
 import time
-import warnings
 from collections import Counter
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
@@ -124,11 +123,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from app.core.imagecodec import read_header
+from app.local_server import example_map, fidotrack_command, running_server
 from app.sim import BENCH_ROOM, render_walk
-
-with warnings.catch_warnings():  # (the test client's own deprecation notice)
-    warnings.simplefilter("ignore")
-    from tests.conftest import FIDOTRACK_SERVE, example_map, free_port, running_server
 
 #: Bound on one request, one WebSocket open or one awaited message, s.
 TIMEOUT_S = 30.0
@@ -1245,9 +1241,9 @@ def sample_open_files(pid: int, stop: threading.Event, samples: list[int]) -> No
 def run_slowloris(seconds: float, server_env: dict[str, str]) -> None:
     """The slowloris scenario on a fresh server: its report as markdown on stdout."""
     with tempfile.TemporaryDirectory() as tmp:
-        os.environ.update({"FIDOTRACK_LOG_LEVEL": "WARNING", **server_env})
-        with running_server(Path(tmp) / "data", Path(tmp) / "server.log") as server:
-            port = int(server.url.rsplit(":", 1)[1])
+        settings = {"FIDOTRACK_LOG_LEVEL": "WARNING", **server_env}
+        with running_server(Path(tmp) / "data", settings=settings, log=Path(tmp) / "server.log") as server:
+            port = server.port
             ctx = multiprocessing.get_context("spawn")
             results = ctx.Queue()
             process = ctx.Process(target=slowloris_process, name="slowloris", daemon=True,
@@ -1273,7 +1269,8 @@ def run_slowloris(seconds: float, server_env: dict[str, str]) -> None:
     last = report.held_samples[len(report.held_samples) // 2:] or [0]
     last_fds = server_fds[len(server_fds) // 2:] or [0]
     commit = _git("rev-parse", "--short", "HEAD") or "?"
-    code = f"the code on PYTHONPATH={os.environ['PYTHONPATH']}" if os.environ.get("PYTHONPATH") else f"commit {commit}"
+    pythonpath = server_env.get("PYTHONPATH", os.environ.get("PYTHONPATH"))
+    code = f"the code on PYTHONPATH={pythonpath}" if pythonpath else f"commit {commit}"
     env = " ".join(f"{k}={v}" for k, v in server_env.items()) or "(as is)"
     print("\n".join([
         "# /livez while a slowloris holds connections",
@@ -1318,7 +1315,7 @@ def _git(*args: str) -> str:
 def _create_key(data_dir: Path) -> str:
     """An admin key, made with ``fidotrack keys create`` on `data_dir`."""
     env = {**os.environ, "FIDOTRACK_API_KEYS": "true", "FIDOTRACK_DATA_DIR": str(data_dir)}
-    done = subprocess.run([FIDOTRACK_SERVE[0], "keys", "create", "--name", "bench-load", "--scopes", "admin"],
+    done = subprocess.run([*fidotrack_command(), "keys", "create", "--name", "bench-load", "--scopes", "admin"],
                           env=env, capture_output=True, text=True, timeout=120, check=True)
     return done.stdout.strip().splitlines()[-1]
 
@@ -1363,10 +1360,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = Path(tmp) / "data"
         key = _create_key(data_dir)
-        # The server takes this process's environment.
-        os.environ.update({"FIDOTRACK_API_KEYS": "true", "FIDOTRACK_LOG_LEVEL": "WARNING", **server_env})
-        port = free_port()
-        with running_server(data_dir, Path(tmp) / "server.log", port=port) as server:
+        # The server takes this process's environment, and these settings over it.
+        settings = {"FIDOTRACK_API_KEYS": "true", "FIDOTRACK_LOG_LEVEL": "WARNING", **server_env}
+        with running_server(data_dir, settings=settings, log=Path(tmp) / "server.log") as server:
+            port = server.port
             with httpx.Client(base_url=server.url, headers={"X-API-Key": key}, timeout=60) as http:
                 environments = []
                 for name in ("bench room", "sacrificial"):

@@ -58,11 +58,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core import freed  # noqa: E402
 from app.core.geometry import Pose  # noqa: E402
+from app.local_server import start_server  # noqa: E402
 from app.sim import BENCH_ROOM, render_walk  # noqa: E402
-from app.sim.scenes import room_scene  # noqa: E402
 from app.sim.examples import CENTRE_LOOP_WALK, SPARSE_WALK  # noqa: E402
+from app.sim.scenes import room_scene  # noqa: E402
 from app.sim.walks import FPS  # noqa: E402
-from bench.bench_track import _free_port, _http, _start_server  # noqa: E402
+from bench.track_clients import QUIET_SERVER, http_json  # noqa: E402
 
 #: Side of the lone card, m: small, as a card on a far wall looks.
 LONE_CARD_M = 0.12
@@ -294,21 +295,21 @@ def main() -> None:
     receiver = Receiver()
     load = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory() as tmp:
-        port = _free_port()
         # The bench's FreeD receiver is on 127.0.0.1: the server sends there only when told.
-        server = _start_server(Path(tmp), port, {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1",
-                                                 "FIDOTRACK_FREED_ALLOWED_NETWORKS": '["127.0.0.1/32"]'})
+        server = start_server(Path(tmp), settings={**QUIET_SERVER, "FIDOTRACK_MAX_TRACK_FPS": "1000",
+                                                   "OPENBLAS_NUM_THREADS": "1",
+                                                   "FIDOTRACK_FREED_ALLOWED_NETWORKS": '["127.0.0.1/32"]'})
         try:
-            base = f"http://127.0.0.1:{port}"
+            base = server.url
             urls = {}
             for name, scene, cam in (("bench", room.scene, camera), ("moving", loop.scene, camera),
                                      ("sparse", sparse_walk.scene, SPARSE_WALK.room.camera),
                                      ("lone", lone_scene, camera)):
-                env = _http("POST", f"{base}/environments", {"name": name, "marker_size_m": 0.2})
-                _http("PUT", f"{base}/environments/{env['id']}/map", scene.map_document(cam))
-                _http("PUT", f"{base}/environments/{env['id']}/freed",
-                      {"host": "127.0.0.1", "port": receiver.port, "camera_id": 1})
-                urls[name] = f"ws://127.0.0.1:{port}/track?environment_id={env['id']}"
+                env = http_json("POST", f"{base}/environments", {"name": name, "marker_size_m": 0.2})
+                http_json("PUT", f"{base}/environments/{env['id']}/map", scene.map_document(cam))
+                http_json("PUT", f"{base}/environments/{env['id']}/freed",
+                          {"host": "127.0.0.1", "port": receiver.port, "camera_id": 1})
+                urls[name] = f"{server.ws_url}/track?environment_id={env['id']}"
             smooth = {"smoothing": {}}
             predicted = {"smoothing": {}, "predict_ms": args.predict_ms}
             asyncio.run(_lock_step_pair(urls["moving"], Sequence("warm-up", moving.frames[:20], moving.truth[:20]),
@@ -331,8 +332,7 @@ def main() -> None:
             lock_s = time.perf_counter() - started
             load.append(os.getloadavg()[0])
         finally:
-            server.terminate()
-            server.wait(timeout=30)
+            server.stop()
             receiver.close()
 
     print(f"\nPoses through /track: {args.frames} frames a sequence, 640x480 JPEG q90, sent at {FPS:.0f} fps; "

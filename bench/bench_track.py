@@ -47,153 +47,41 @@ import argparse
 import asyncio
 import json
 import os
-import socket
-import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-import websockets
 from tqdm import tqdm
 
-from app.core.geometry import Pose
-from app.sim import BENCH_ROOM, render_walk
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-MODES = {"regions": True, "full": False}
-#: timing_ms keys shown in the split of the server's time.
-SPLIT = ("decode", "plan", "candidates", "targets", "pose", "total")
-
-
-@dataclass
-class RunStats:
-    name: str
-    mode: str
-    sent: int = 0
-    replies: int = 0
-    seconds: float = 0.0
-    latency_ms: list[float] = field(default_factory=list)
-    server_ms: list[float] = field(default_factory=list)
-    detect_ms: list[float] = field(default_factory=list)
-    dropped: int = 0
-    posed: int = 0
-    full_scans: int = 0
-    reasons: dict[str, int] = field(default_factory=dict)  # scan_reason -> frames
-    split: dict[str, list[float]] = field(default_factory=dict)  # timing_ms key -> values
-    errors_mm: list[float] = field(default_factory=list)
-    positions: dict[int, np.ndarray] = field(default_factory=dict)  # seq -> position
-
-    @property
-    def fps(self) -> float:
-        return self.replies / self.seconds if self.seconds else 0.0
-
-    def row(self) -> str:
-        def pct(values: list[float], q: float) -> str:
-            return f"{np.percentile(values, q):.1f}" if values else "-"
-
-        return (f"| {self.name} | {self.mode} | {self.sent} | {self.replies} | {self.fps:.0f} | "
-                f"{pct(self.latency_ms, 50)} | {pct(self.latency_ms, 99)} | {pct(self.server_ms, 50)} | "
-                f"{pct(self.server_ms, 99)} | {pct(self.detect_ms, 50)} | {self.dropped} | "
-                f"{self.posed / max(self.replies, 1):.0%} | {pct(self.errors_mm, 50)} | {pct(self.errors_mm, 90)} | "
-                f"{self.full_scans / max(self.replies, 1):.0%} |")
-
-
-HEADER = ("| run | mode | sent | replies | fps | latency p50 ms | latency p99 ms | server ms p50 | server ms p99 | "
-          "detect ms p50 | dropped | with pose | position err p50 mm | position err p90 mm | full scans |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _http(method: str, url: str, body: dict | None = None) -> dict:
-    data = json.dumps(body).encode() if body is not None else None
-    request = urllib.request.Request(url, data=data, method=method, headers={"content-type": "application/json"})
-    with urllib.request.urlopen(request, timeout=30) as reply:
-        return json.loads(reply.read() or b"null")
-
-
-def _start_server(data_dir: Path, port: int, extra_env: dict[str, str] | None = None) -> subprocess.Popen:
-    # The deployment as the README starts it: `fidotrack serve` (logs to a file).
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port),
-           "FIDOTRACK_LOG_LEVEL": "WARNING", **(extra_env or {})}
-    proc = subprocess.Popen([str(Path(sys.executable).parent / "fidotrack"), "serve"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=(data_dir / "server.log").open("wb"))
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if _http("GET", f"http://127.0.0.1:{port}/readyz").get("status") == "ready":
-                return proc
-        except OSError:
-            pass
-        time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError("the server did not become ready")
-
-
-async def _open(url: str, mode: str) -> websockets.ClientConnection:
-    ws = await websockets.connect(url, max_size=None)
-    hello = json.loads(await ws.recv())
-    assert hello["type"] == "hello", hello
-    await ws.send(json.dumps({"type": "config", "regions": MODES[mode]}))
-    echo = json.loads(await ws.recv())
-    assert echo["type"] == "config" and echo["regions"] is MODES[mode], echo
-    return ws
-
-
-def _account(stats: RunStats, reply: dict, truth: list[Pose]) -> None:
-    stats.replies += 1
-    stats.server_ms.append(reply["timing_ms"]["total"])
-    stats.detect_ms.append(reply["timing_ms"].get("detect", np.nan))
-    stats.dropped += int(reply["dropped"])
-    stats.full_scans += reply.get("scan", "full") == "full"
-    for key in SPLIT:
-        stats.split.setdefault(key, []).append(float(reply["timing_ms"].get(key, 0.0)))
-    reason = reply.get("scan_reason", "?")
-    stats.reasons[reason] = stats.reasons.get(reason, 0) + 1
-    if reply["pose"] is not None:
-        stats.posed += 1
-        position = np.asarray(reply["pose"]["position"])
-        stats.positions[reply["seq"]] = position
-        stats.errors_mm.append(1e3 * float(np.linalg.norm(position - truth[reply["seq"]].position)))
+from app.core.geometry import Pose  # noqa: E402
+from app.local_server import running_server  # noqa: E402
+from app.sim import BENCH_ROOM, render_walk  # noqa: E402
+from bench.track_clients import (  # noqa: E402
+    HEADER,
+    MODES,
+    QUIET_SERVER,
+    SPLIT,
+    RunStats,
+    account,
+    http_json,
+    open_track,
+    stream_lock_step,
+)
 
 
 async def _lock_step(url: str, mode: str, frames: list[bytes], truth: list[Pose], name: str) -> RunStats:
-    return await stream_lock_step(await _open(url, mode), frames, truth, RunStats(name, mode))
-
-
-async def stream_lock_step(ws: websockets.ClientConnection, frames: list[bytes], truth: list[Pose],
-                           stats: RunStats) -> RunStats:
-    """Send `frames` on an open connection, each when the reply to the last is in, into
-    `stats`; the connection is closed after."""
-    try:
-        start = time.perf_counter()
-        for data in frames:
-            sent = time.perf_counter()
-            await ws.send(data)
-            stats.sent += 1
-            reply = json.loads(await ws.recv())
-            if reply["type"] != "frame":
-                raise RuntimeError(f"unexpected reply {reply}")
-            stats.latency_ms.append((time.perf_counter() - sent) * 1e3)
-            _account(stats, reply, truth)
-        stats.seconds = time.perf_counter() - start
-    finally:
-        await ws.close()
-    return stats
+    return await stream_lock_step(await open_track(url, mode), frames, truth, RunStats(name, mode))
 
 
 async def _lock_step_pair(url: str, frames: list[bytes], truth: list[Pose], name: str) -> list[RunStats]:
     """Lock-step in both modes at once, frame by frame in alternating order."""
     stats = {mode: RunStats(name, mode) for mode in MODES}
-    sockets = {mode: await _open(url, mode) for mode in MODES}
+    sockets = {mode: await open_track(url, mode) for mode in MODES}
     try:
         for seq, data in enumerate(frames):
             for mode in (list(MODES) if seq % 2 == 0 else list(MODES)[::-1]):
@@ -206,7 +94,7 @@ async def _lock_step_pair(url: str, frames: list[bytes], truth: list[Pose], name
                 took = time.perf_counter() - sent
                 stats[mode].latency_ms.append(took * 1e3)
                 stats[mode].seconds += took
-                _account(stats[mode], reply, truth)
+                account(stats[mode], reply, truth)
     finally:
         for ws in sockets.values():
             await ws.close()
@@ -216,7 +104,7 @@ async def _lock_step_pair(url: str, frames: list[bytes], truth: list[Pose], name
 async def _free_running(url: str, mode: str, frames: list[bytes], truth: list[Pose], fps: float) -> RunStats:
     stats = RunStats(f"free-running, sent at {fps:.0f} fps", mode)
     sent_at: dict[int, float] = {}
-    ws = await _open(url, mode)
+    ws = await open_track(url, mode)
     try:
         start = time.perf_counter()
 
@@ -235,7 +123,7 @@ async def _free_running(url: str, mode: str, frames: list[bytes], truth: list[Po
             if reply["type"] != "frame":
                 raise RuntimeError(f"unexpected reply {reply}")
             stats.latency_ms.append((time.perf_counter() - sent_at[reply["seq"]]) * 1e3)
-            _account(stats, reply, truth)
+            account(stats, reply, truth)
             if reply["seq"] == last:
                 break
         await sender
@@ -285,29 +173,24 @@ def main() -> None:
     runs: list[RunStats] = []
     pairs: list[tuple[str, float]] = []
     load = [os.getloadavg()[0]]
-    with tempfile.TemporaryDirectory() as tmp:
-        port = _free_port()
-        server = _start_server(Path(tmp), port, dict(item.split("=", 1) for item in args.server_env))
-        try:
-            base = f"http://127.0.0.1:{port}"
-            env = _http("POST", f"{base}/environments", {"name": "bench room", "marker_size_m": 0.2})
-            _http("PUT", f"{base}/environments/{env['id']}/map", scene.map_document(camera))
-            url = f"ws://127.0.0.1:{port}/track?environment_id={env['id']}"
-            asyncio.run(_lock_step_pair(url, frames[:20], poses[:20], "warm-up"))
-            for round_ in range(args.repeat):
-                order = list(MODES) if round_ % 2 == 0 else list(MODES)[::-1]  # neither always first
-                runs += asyncio.run(_lock_step_pair(url, frames, poses, "lock-step"))
+    server_env = {**QUIET_SERVER, **dict(item.split("=", 1) for item in args.server_env)}
+    with tempfile.TemporaryDirectory() as tmp, running_server(Path(tmp), settings=server_env) as server:
+        # The deployment as the README starts it: `fidotrack serve`.
+        env = http_json("POST", f"{server.url}/environments", {"name": "bench room", "marker_size_m": 0.2})
+        http_json("PUT", f"{server.url}/environments/{env['id']}/map", scene.map_document(camera))
+        url = f"{server.ws_url}/track?environment_id={env['id']}"
+        asyncio.run(_lock_step_pair(url, frames[:20], poses[:20], "warm-up"))
+        for round_ in range(args.repeat):
+            order = list(MODES) if round_ % 2 == 0 else list(MODES)[::-1]  # neither always first
+            runs += asyncio.run(_lock_step_pair(url, frames, poses, "lock-step"))
+            for mode in order:
+                runs.append(asyncio.run(_free_running(url, mode, frames, poses, args.free_fps)))
+            if not args.no_pair:
                 for mode in order:
-                    runs.append(asyncio.run(_free_running(url, mode, frames, poses, args.free_fps)))
-                if not args.no_pair:
-                    for mode in order:
-                        pair = asyncio.run(_two(url, mode, frames, poses))
-                        runs += pair
-                        pairs.append((mode, sum(r.replies for r in pair) / max(max(r.seconds for r in pair), 1e-9)))
-                load.append(os.getloadavg()[0])
-        finally:
-            server.terminate()
-            server.wait(timeout=30)
+                    pair = asyncio.run(_two(url, mode, frames, poses))
+                    runs += pair
+                    pairs.append((mode, sum(r.replies for r in pair) / max(max(r.seconds for r in pair), 1e-9)))
+            load.append(os.getloadavg()[0])
 
     print(f"\n/track, {args.frames} frames 640x480 JPEG q{args.quality}, room 8x6x3 m, 30 cards, "
           f"uvicorn on 127.0.0.1, {os.cpu_count()} cores, {args.repeat} round(s), "

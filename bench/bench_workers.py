@@ -34,11 +34,11 @@ import argparse
 import asyncio
 import os
 import sqlite3
-import subprocess
 import sys
 import tempfile
 import time
 from collections import Counter
+from contextlib import ExitStack
 from pathlib import Path
 
 import cv2
@@ -48,36 +48,24 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.geometry import Pose  # noqa: E402
+from app.local_server import running_server  # noqa: E402
 from app.sim import BENCH_ROOM, render_walk  # noqa: E402
-from bench.bench_track import RunStats, _free_port, _http, _open, stream_lock_step  # noqa: E402
+from bench.track_clients import (  # noqa: E402
+    QUIET_SERVER,
+    RunStats,
+    http_json,
+    open_track,
+    stream_lock_step,
+)
 
-#: The servers' environment.
-SERVER_ENV = {"FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1", "FIDOTRACK_LOG_LEVEL": "WARNING"}
+#: The servers' environment; an empty FIDOTRACK_DATABASE_URL: each server its own SQLite
+#: file in its data directory, whatever the caller's environment names.
+SERVER_ENV = {**QUIET_SERVER, "FIDOTRACK_MAX_TRACK_FPS": "1000", "OPENBLAS_NUM_THREADS": "1",
+              "FIDOTRACK_DATABASE_URL": ""}
 #: Frames each client streams before the measured rounds (first full scans, caches, both workers).
 WARM_UP = 20
 #: /readyz answers in a row before a server counts as ready (with two workers, each answers some).
 READY_IN_A_ROW = 10
-
-
-def _start_server(data_dir: Path, port: int, workers: int) -> subprocess.Popen:
-    """``fidotrack serve --workers N``, as the README starts it; its log in data_dir."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "FIDOTRACK_DATA_DIR": str(data_dir), "FIDOTRACK_PORT": str(port), **SERVER_ENV}
-    env.pop("FIDOTRACK_DATABASE_URL", None)  # each server its own SQLite file
-    proc = subprocess.Popen([str(Path(sys.executable).parent / "fidotrack"), "serve", "--workers", str(workers)],
-                            env=env, stdout=subprocess.DEVNULL, stderr=(data_dir / "server.log").open("wb"))
-    deadline, in_a_row = time.monotonic() + 120, 0
-    while in_a_row < READY_IN_A_ROW:
-        if time.monotonic() > deadline or proc.poll() is not None:
-            proc.kill()
-            raise RuntimeError(f"the server with {workers} worker(s) did not become ready")
-        try:
-            ready = _http("GET", f"http://127.0.0.1:{port}/readyz").get("status") == "ready"
-        except OSError:
-            ready = False
-        in_a_row = in_a_row + 1 if ready else 0
-        time.sleep(0.05 if ready else 0.2)
-    return proc
 
 
 def _holders(data_dir: Path) -> Counter[str]:
@@ -91,7 +79,7 @@ async def _clients(url: str, frames: list[bytes], truth: list[Pose], clients: in
     """`clients` lock-step clients at once; their stats and where they were held. With
     `spread_evenly`, they connect together again until every worker holds its share."""
     for _ in range(200):
-        sockets = await asyncio.gather(*(_open(url, "regions") for _ in range(clients)))
+        sockets = await asyncio.gather(*(open_track(url, "regions") for _ in range(clients)))
         spread = await asyncio.to_thread(_holders, data_dir)
         if not spread_evenly or (len(spread) > 1 and max(spread.values()) - min(spread.values()) <= 1):
             break
@@ -135,31 +123,27 @@ def main() -> None:
     results: dict[str, list[tuple[list[RunStats], Counter[str]]]] = {name: [] for name in configs}
     load = [os.getloadavg()[0]]
     started = time.monotonic()
-    with tempfile.TemporaryDirectory() as tmp:
-        servers: dict[int, tuple[subprocess.Popen, str, Path]] = {}
-        try:
-            for workers in sorted({w for w, _ in configs.values()}):
-                port, data_dir = _free_port(), Path(tmp) / f"workers-{workers}"
-                proc = _start_server(data_dir, port, workers)
-                base = f"http://127.0.0.1:{port}"
-                env = _http("POST", f"{base}/environments", {"name": "bench room", "marker_size_m": 0.2})
-                _http("PUT", f"{base}/environments/{env['id']}/map", scene.map_document(camera))
-                servers[workers] = (proc, f"ws://127.0.0.1:{port}/track?environment_id={env['id']}", data_dir)
-            for workers, (_, url, data_dir) in servers.items():  # every worker warmed
-                asyncio.run(_clients(url, frames[:WARM_UP], poses[:WARM_UP], args.clients, data_dir, "warm-up",
-                                     spread_evenly=workers > 1))
-            names = list(configs)
-            for round_ in range(args.rounds):
-                for name in names[round_ % len(names):] + names[:round_ % len(names)]:  # none always first
-                    workers, evenly = configs[name]
-                    _, url, data_dir = servers[workers]
-                    results[name].append(asyncio.run(
-                        _clients(url, frames, poses, args.clients, data_dir, name, spread_evenly=evenly)))
-                load.append(os.getloadavg()[0])
-        finally:
-            for proc, _, _ in servers.values():
-                proc.terminate()
-                proc.wait(timeout=30)
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
+        servers: dict[int, tuple[str, Path]] = {}  # workers -> the /track URL, the data directory
+        for workers in sorted({w for w, _ in configs.values()}):
+            data_dir = Path(tmp) / f"workers-{workers}"
+            # ``fidotrack serve --workers N``, as the README starts it; its log in data_dir.
+            server = stack.enter_context(running_server(data_dir, settings=SERVER_ENV, workers=workers,
+                                                        ready_in_a_row=READY_IN_A_ROW))
+            env = http_json("POST", f"{server.url}/environments", {"name": "bench room", "marker_size_m": 0.2})
+            http_json("PUT", f"{server.url}/environments/{env['id']}/map", scene.map_document(camera))
+            servers[workers] = (f"{server.ws_url}/track?environment_id={env['id']}", data_dir)
+        for workers, (url, data_dir) in servers.items():  # every worker warmed
+            asyncio.run(_clients(url, frames[:WARM_UP], poses[:WARM_UP], args.clients, data_dir, "warm-up",
+                                 spread_evenly=workers > 1))
+        names = list(configs)
+        for round_ in range(args.rounds):
+            for name in names[round_ % len(names):] + names[:round_ % len(names)]:  # none always first
+                workers, evenly = configs[name]
+                url, data_dir = servers[workers]
+                results[name].append(asyncio.run(
+                    _clients(url, frames, poses, args.clients, data_dir, name, spread_evenly=evenly)))
+            load.append(os.getloadavg()[0])
 
     rows = {name: _row(name, results[name]) for name in configs}
     one = rows["`--workers 1`"]
