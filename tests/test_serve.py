@@ -164,6 +164,14 @@ def _new_lines(log: Path, seen: int) -> list[str]:
     return log.read_text().splitlines()[seen:]
 
 
+def _request_id(line: str) -> str | None:
+    """The request id a log line names, if it is one of the service's lines."""
+    try:
+        return json.loads(line).get("request_id")
+    except (ValueError, AttributeError):
+        return None
+
+
 def _wait_for_line(log: Path, seen: int, needle: str, timeout: float = 5.0) -> list[str]:
     """The log's lines after the first `seen`, once one of them holds `needle`."""
     deadline = time.monotonic() + timeout
@@ -186,12 +194,17 @@ def test_each_request_is_logged_once(tmp_path: Path) -> None:
     with running_server(tmp_path / "data", log) as server:
         env = httpx.post(f"{server.url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
         assert httpx.put(f"{server.url}/environments/{env['id']}/map", json=example_map()).status_code == 200
-        for method, path in (("GET", "/environments"), ("GET", "/environments/999"), ("GET", "/livez")):
+        for k, (method, path) in enumerate((("GET", "/environments"), ("GET", "/environments/999"),
+                                             ("GET", "/livez"))):
             seen = len(log.read_text().splitlines())
-            assert httpx.request(method, f"{server.url}{path}", headers={"X-Request-ID": "once-1"}).status_code
-            _wait_for_line(log, seen, '"once-1"')
+            request_id = f"once-{k}"
+            assert httpx.request(method, f"{server.url}{path}", headers={"X-Request-ID": request_id}).status_code
+            _wait_for_line(log, seen, f'"{request_id}"')
             time.sleep(0.3)  # anything else it would print comes at once
-            lines = _new_lines(log, seen)
+            # The lines about this request: its own, and any other naming its path, but
+            # for a line of an earlier request that comes late (it names another id).
+            lines = [line for line in _new_lines(log, seen)
+                     if f'"{request_id}"' in line or (path in line and _request_id(line) in (None, request_id))]
             assert len(lines) == 1, lines
             assert json.loads(lines[0])["status"] in (200, 404) and json.loads(lines[0])["method"] == method
 
@@ -225,19 +238,23 @@ def test_the_server_answers_while_the_kernels_compile(tmp_path: Path, monkeypatc
     server = launch_server(tmp_path / "data", port=port, log=log)  # not waiting: /readyz is what is watched
     process = server.process
     try:
-        while True:
+        while True:  # the server answers...
             try:
                 if httpx.get(f"{url}/livez", timeout=1).status_code == 200:
                     break
             except httpx.TransportError:
                 pass
             assert process.poll() is None, log.read_text()
-            # imports and migrations, 2-3.5 s on two busy cores; not the compilation
-            assert time.monotonic() - started < 8.0, log.read_text()
+            assert time.monotonic() - started < 120.0, log.read_text()  # (not to hang: no bound is asserted)
             time.sleep(0.05)
-        ready = httpx.get(f"{url}/readyz")
-        assert ready.status_code == 503, ready.text
-        assert ready.json()["status"] == "not ready" and ready.json()["reason"] == "compiling the detector's kernels"
+        while True:  # ... and says why it is not ready: first loading, then compiling
+            ready = httpx.get(f"{url}/readyz")
+            assert ready.status_code == 503, ready.text  # answered before the kernels were done
+            assert ready.json()["status"] == "not ready", ready.text
+            if ready.json()["reason"] == "compiling the detector's kernels":
+                break
+            assert ready.json()["reason"] == "loading the detector's kernels", ready.text
+            time.sleep(0.05)
         assert "compiling the detector's kernels" in log.read_text()
 
         created = httpx.post(f"{url}/environments", json={"name": "lab", "marker_size_m": 0.2}).json()
