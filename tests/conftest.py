@@ -171,30 +171,6 @@ def _runs_the_service(metafunc: pytest.Metafunc) -> bool:
     return "settings" in names or (in_routers and "tmp_path" in names)
 
 
-#: The test files that take longest (each over a minute of a full run on two cores),
-#: longest first. They run first, so that the workers (pytest-xdist, a file whole in one
-#: worker) finish together instead of one running the longest file alone at the end.
-LONGEST_FILES = (
-    "test_job_engine.py",
-    "test_readme.py",
-    "routers/test_survey_api.py",
-    "routers/test_resilience.py",
-    "test_engine_network.py",
-    "test_client.py",
-)
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The longest files first (`LONGEST_FILES`), every file's tests in their order."""
-    here = Path(__file__).parent
-
-    def rank(item: pytest.Item) -> int:
-        name = Path(item.path).relative_to(here).as_posix() if here in Path(item.path).parents else ""
-        return LONGEST_FILES.index(name) if name in LONGEST_FILES else len(LONGEST_FILES)
-
-    items.sort(key=rank)
-
-
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "database" in metafunc.fixturenames and _runs_the_service(metafunc):
         metafunc.parametrize("database", DATABASES, indirect=True)
