@@ -231,7 +231,7 @@ def _judge(gray: np.ndarray, pyr: Pyramid, pts: np.ndarray, n: int, family: str,
         if clock is not None:
             clock.lap("verify", quick=0)
         return None
-    m = _measures_from(vals.take(quick, axis=0), inside.take(quick, axis=0)[:, :n_plan], plan, cells=False)
+    m = _measures_from(vals.take(quick, axis=0)[:, :n_plan], inside.take(quick, axis=0)[:, :n_plan], plan, cells=False)
     keep = quick[m.passed(coarse=True)]
     if clock is not None:
         clock.lap("verify", quick=quick.size, verified=keep.size)

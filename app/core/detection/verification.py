@@ -312,6 +312,8 @@ def _measures_from(vals: np.ndarray, inside: np.ndarray, plan: _SamplePlan, cell
     order statistics (np.median, np.percentile) come from a sort of each group of
     samples (`_SamplePlan.sorted_index`), all in one compiled loop over the rows
     (`kernels.measure_stats`)."""
+    if vals.shape != inside.shape:  # the kernel reads both by the samples' count
+        raise ValueError(f"samples {vals.shape} and their mask {inside.shape} differ")
     stats, valid = kernels.measure_stats(
         np.ascontiguousarray(vals, np.float32), np.ascontiguousarray(inside), plan.sorted_index, plan.sorted_bounds,
         plan.stats_lo, plan.stats_hi, plan.stats_frac, plan.disc, plan.edge, plan.core)
