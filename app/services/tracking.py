@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -80,10 +80,11 @@ class FrameResult:
     timing_ms: dict[str, float]
     width: int
     height: int
-    scan: Literal["full", "regions"] = field(init=False)
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "scan", "regions" if self.tracked.regions else "full")
+    @property
+    def scan(self) -> Literal["full", "regions"]:
+        """How the frame was scanned, as the reply says it."""
+        return "regions" if self.tracked.regions else "full"
 
     @property
     def targets(self) -> list[DetectedTargetOut]:

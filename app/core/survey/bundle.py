@@ -153,7 +153,7 @@ class BundleInfo:
         projected = PC - (PC @ np.linalg.pinv(G).T) @ G.T
         return (projected + projected.T) / 2.0
 
-    def disc_std(self, X: np.ndarray) -> np.ndarray:
+    def disc_std(self, X: np.ndarray, joint: np.ndarray | None = None) -> np.ndarray:
         """RMS 3D standard deviation of every disc relative to the map: the square root
         of the trace of its 3x3 block of `disc_covariance`.
 
@@ -161,6 +161,8 @@ class BundleInfo:
         ----------
         X : (n_points, 3) ndarray
             The reconstruction's points.
+        joint : ndarray, optional
+            `disc_covariance` of `X`, when the caller has it already.
 
         Returns
         -------
@@ -169,7 +171,7 @@ class BundleInfo:
             when no covariance was computed.
         """
         std = np.full(len(X), np.nan)
-        C = self.disc_covariance(X)
+        C = self.disc_covariance(X) if joint is None else joint
         if C is None:
             return std
         diag = np.clip(np.diag(C), 0.0, None).reshape(-1, 3)

@@ -270,8 +270,8 @@ def survey_result(state: SurveyState, info: BundleInfo, surveyed: SurveyedViews,
     """
     rec, tracks, views = state.reconstruction, state.tracks, state.views
     registered = rec.registered()
-    std = info.disc_std(rec.X) * scale.factor
-    joint = info.disc_covariance(rec.X)
+    joint = info.disc_covariance(rec.X)  # projected once: the discs' std_m are its blocks
+    std = info.disc_std(rec.X, joint) * scale.factor
     row_of = {int(point): k for k, point in enumerate(info.points)}
     err = rec.errors(tracks, info.obs)
     rms = float(np.sqrt(np.nanmean(err**2)))
